@@ -1,0 +1,17 @@
+"""Exceptions with messages a user can act on (the CLI prints them without a traceback)."""
+
+
+class BareEsaError(Exception):
+    """Base class of every error the solver raises on purpose."""
+
+
+class MeshError(BareEsaError, ValueError):
+    """A mesh is unusable: empty, non-finite, bad indices, unreadable file..."""
+
+
+class InputError(BareEsaError, ValueError):
+    """An argument is inconsistent: wrong shapes, vertex counts, unknown names..."""
+
+
+class SolveCancelled(BareEsaError):
+    """A long solve was cancelled by its caller; no partial result is returned."""
