@@ -73,7 +73,8 @@ def cotan_laplacian(verts, faces, field):
     pointwise Laplace-Beltrami operator.
     """
     cot = corner_cotangents(verts, faces)  # (..., F, 3)
-    out = torch.zeros_like(field.expand(verts.shape[:-1] + field.shape[-1:]))
+    shape = torch.broadcast_shapes(verts.shape[:-1], field.shape[:-1]) + field.shape[-1:]
+    out = field.new_zeros(shape)
     for k in range(3):
         i = faces[:, (k + 1) % 3]
         j = faces[:, (k + 2) % 3]
