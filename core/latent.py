@@ -1,0 +1,279 @@
+"""The restricted latent space (paper section 3): a basis, its decoder and metric.
+
+A basis is a template mesh q-bar (N vertices, F faces) and P deformation fields
+h_i, split into named groups (e.g. ``pose`` and ``shape``). The affine decoder is
+F(alpha) = q-bar + sum_i alpha_i h_i and the latent space carries the pull-back
+metric G-bar(alpha) = [G_F(alpha)(h_i, h_j)] of the invariant H2 metric.
+
+Basis files are ``.npz`` (arrays) with a small JSON card beside them
+(``name.json``: metadata a person can read). ``load_basis`` also accepts the name
+of a basis bundled in ``bases/``.
+"""
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import h2_metric
+from .errors import InputError
+from .h2_metric import H2Weights
+
+BUNDLED_DIR = Path(__file__).resolve().parents[1] / "bases"
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Level:
+    """One level of the multiscale registration schedule.
+
+    ``sigma`` is relative to the basis' reference scale (so it carries over to
+    any units); ``weight`` multiplies the varifold term (the paper's lambda);
+    ``steps`` is the number of time steps of the latent path.
+    """
+
+    sigma: float
+    weight: float
+    steps: int
+    max_iter: int = 200
+
+    def __post_init__(self):
+        if not (self.sigma > 0 and self.weight > 0 and self.steps >= 1 and self.max_iter >= 1):
+            raise InputError(f"invalid schedule level {self}: sigma, weight > 0 and steps, max_iter >= 1")
+
+
+#: The paper's body schedule (sigma 0.4 -> 0.1 -> 0.025 m on ~1.7 m bodies), relative to height.
+PAPER_BODY_SCHEDULE = (Level(0.4 / 1.7, 1e1, 2), Level(0.1 / 1.7, 1e5, 3), Level(0.025 / 1.7, 1e10, 5))
+
+
+@dataclass
+class Basis:
+    """Template, deformation fields and metadata of a latent space.
+
+    template (N, 3) float64, faces (F, 3) int64, fields (P, N, 3);
+    groups maps a name to its index range [start, stop) in 0..P.
+    """
+
+    template: np.ndarray
+    faces: np.ndarray
+    fields: np.ndarray
+    groups: dict
+    weights: H2Weights = field(default_factory=lambda: h2_metric.PRESETS["body"])
+    schedule: tuple = PAPER_BODY_SCHEDULE
+    scale: float = 1.0
+    units: str = "m"
+    name: str = "basis"
+    provenance: dict = field(default_factory=dict)
+    extras: dict = field(default_factory=dict)  # further arrays, e.g. a fitted distribution
+
+    def __post_init__(self):
+        validate_basis(self)
+
+    @property
+    def n_fields(self):
+        """P, the dimension of the latent space."""
+        return self.fields.shape[0]
+
+    def group_slice(self, name):
+        """Index slice of a named group."""
+        if name not in self.groups:
+            raise InputError(f"basis '{self.name}' has no group '{name}' (groups: {', '.join(self.groups)})")
+        start, stop = self.groups[name]
+        return slice(start, stop)
+
+    def tensors(self, dtype=torch.float64, device="cpu"):
+        """(template (N, 3), faces (F, 3) long, fields (P, N, 3)) as torch tensors."""
+        return (torch.as_tensor(self.template, dtype=dtype, device=device),
+                torch.as_tensor(self.faces, dtype=torch.long, device=device),
+                torch.as_tensor(self.fields, dtype=dtype, device=device))
+
+    def card(self):
+        """The JSON-able metadata of the basis."""
+        return {"format": FORMAT_VERSION, "name": self.name, "n_vertices": int(self.template.shape[0]),
+                "n_faces": int(self.faces.shape[0]), "n_fields": int(self.n_fields),
+                "groups": {k: list(map(int, v)) for k, v in self.groups.items()},
+                "metric": list(self.weights.as_tuple()),
+                "schedule": [asdict(lv) for lv in self.schedule],
+                "scale": float(self.scale), "units": self.units, "provenance": self.provenance}
+
+
+def validate_basis(b):
+    """Check shapes, finiteness and groups of a basis; raise InputError naming the problem."""
+    t, f, h = np.asarray(b.template), np.asarray(b.faces), np.asarray(b.fields)
+    if t.ndim != 2 or t.shape[1] != 3 or t.shape[0] < 3:
+        raise InputError(f"basis '{b.name}': template must be (N, 3) with N >= 3, got {t.shape}")
+    if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] < 1 or not np.issubdtype(f.dtype, np.integer):
+        raise InputError(f"basis '{b.name}': faces must be an integer (F, 3) array, got {f.shape} {f.dtype}")
+    if f.min() < 0 or f.max() >= t.shape[0]:
+        raise InputError(f"basis '{b.name}': face indices must lie in 0..{t.shape[0] - 1}")
+    if h.ndim != 3 or h.shape[1:] != t.shape or h.shape[0] < 1:
+        raise InputError(f"basis '{b.name}': fields must be (P, {t.shape[0]}, 3), got {h.shape}")
+    for what, arr in (("template", t), ("fields", h)):
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            raise InputError(f"basis '{b.name}': {what} has {int(bad.sum())} non-finite values")
+    covered = np.zeros(h.shape[0], dtype=int)
+    for name, rng in b.groups.items():
+        if len(rng) != 2 or not 0 <= rng[0] < rng[1] <= h.shape[0]:
+            raise InputError(f"basis '{b.name}': group '{name}' range {tuple(rng)} is not within 0..{h.shape[0]}")
+        covered[rng[0]:rng[1]] += 1
+    if b.groups and (covered != 1).any():
+        raise InputError(f"basis '{b.name}': groups must cover every field exactly once")
+    if not b.scale > 0:
+        raise InputError(f"basis '{b.name}': reference scale must be positive, got {b.scale}")
+    b.template = t.astype(np.float64)
+    b.faces = f.astype(np.int64)
+    b.groups = {k: (int(v[0]), int(v[1])) for k, v in (b.groups or {"all": (0, h.shape[0])}).items()}
+    b.weights = H2Weights.parse(b.weights)
+    b.schedule = tuple(lv if isinstance(lv, Level) else Level(**lv) for lv in b.schedule)
+
+
+def decode(template, fields, alpha):
+    """F(alpha) = template + sum_i alpha_i h_i: (N, 3), (P, N, 3), (..., P) -> (..., N, 3)."""
+    if alpha.shape[-1] != fields.shape[0]:
+        raise InputError(f"code has {alpha.shape[-1]} coefficients but the basis has {fields.shape[0]} fields")
+    return template + torch.tensordot(alpha, fields, dims=([-1], [0]))
+
+
+def latent_metric(template, faces, fields, alpha, weights):
+    """The latent metric matrix G-bar(alpha): alpha (P,) -> (P, P)."""
+    return h2_metric.metric_matrix(decode(template, fields, alpha), faces, fields, weights)
+
+
+def latent_path_energy(template, faces, fields, path, weights, per_step=False):
+    """Discrete energy of a latent path: path (..., T, P) -> (...).
+
+    Equal to sum_k dbeta_k^T G-bar(mid_k) dbeta_k / dt, evaluated through the
+    decoded meshes (cost O(T F), no P x P matrix is formed).
+    """
+    return h2_metric.path_energy(decode(template, fields, path), faces, weights, per_step=per_step)
+
+
+# ----------------------------------------------------------------------------------- files
+
+
+def resolve_basis_path(name_or_path):
+    """A bundled basis name ('humanoid') or a path to an .npz file -> Path."""
+    p = Path(name_or_path)
+    if p.suffix == ".npz" or p.exists() or p.parent != Path("."):
+        if not p.exists():
+            raise InputError(f"basis file {p} does not exist")
+        return p
+    bundled = BUNDLED_DIR / f"{name_or_path}.npz"
+    if bundled.exists():
+        return bundled
+    names = sorted(x.stem for x in BUNDLED_DIR.glob("*.npz"))
+    raise InputError(f"no bundled basis named '{name_or_path}' (bundled: {', '.join(names) or 'none'}); "
+                     "give a path to an .npz basis file instead")
+
+
+def save_basis(path, basis):
+    """Write ``path`` (.npz arrays) and ``path.json`` (its card) atomically."""
+    path = Path(path)
+    if path.suffix != ".npz":
+        raise InputError(f"a basis file must end in .npz, got {path.name}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    card = basis.card()
+    arrays = {"template": basis.template, "faces": basis.faces, "fields": basis.fields,
+              "card": np.frombuffer(json.dumps(card).encode(), dtype=np.uint8)}
+    arrays.update({f"extra_{k}": np.asarray(v) for k, v in basis.extras.items()})
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    tmp.replace(path)
+    json_tmp = path.with_suffix(".json.tmp")
+    json_tmp.write_text(json.dumps(card, indent=2) + "\n")
+    json_tmp.replace(path.with_suffix(".json"))
+
+
+def load_basis(name_or_path):
+    """Load and validate a basis from a bundled name or an .npz path."""
+    path = resolve_basis_path(name_or_path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except Exception as err:  # zipfile / pickle / value errors
+        raise InputError(f"cannot read basis file {path}: {err}") from None
+    missing = {"template", "faces", "fields", "card"} - set(data)
+    if missing:
+        raise InputError(f"basis file {path} lacks {', '.join(sorted(missing))}")
+    try:
+        card = json.loads(data["card"].tobytes().decode())
+    except ValueError as err:
+        raise InputError(f"basis file {path} has an unreadable card: {err}") from None
+    if card.get("format", 0) > FORMAT_VERSION:
+        raise InputError(f"basis file {path} has format {card['format']}; this version reads up to {FORMAT_VERSION}")
+    return Basis(template=data["template"], faces=data["faces"], fields=data["fields"],
+                 groups=card.get("groups", {}), weights=card.get("metric", "body"),
+                 schedule=card.get("schedule", PAPER_BODY_SCHEDULE), scale=card.get("scale", 1.0),
+                 units=card.get("units", ""), name=card.get("name", path.stem),
+                 provenance=card.get("provenance", {}),
+                 extras={k[6:]: v for k, v in data.items() if k.startswith("extra_")})
+
+
+# --------------------------------------------------------------------------- construction
+
+
+def principal_fields(tangents, n_components):
+    """Leading principal directions of tangent vectors: (M, N, 3) -> fields (K, N, 3), variance ratios (K,).
+
+    Uncentred PCA (SVD of the tangent vectors themselves): tangent vectors of
+    motions are directions, their mean is meaningful and must stay in the span.
+    Fields are scaled by singular value / sqrt(M) so that codes of the training
+    data are of order one (well-conditioned optimisation).
+    """
+    m = tangents.reshape(tangents.shape[0], -1)
+    if m.shape[0] == 0:
+        raise InputError("no tangent vectors: a group needs at least one sequence of two frames")
+    _, s, vt = np.linalg.svd(m, full_matrices=False)
+    rank = int((s > s[0] * 1e-10).sum()) if s[0] > 0 else 0
+    if rank == 0:
+        raise InputError("all tangent vectors are zero: the frames of a group do not move")
+    k = min(n_components, rank)
+    fields = (s[:k, None] / math.sqrt(m.shape[0])) * vt[:k]
+    ratios = s[:k] ** 2 / (s**2).sum()
+    return fields.reshape(k, *tangents.shape[1:]), ratios
+
+
+def sequence_tangents(sequences):
+    """Differences of consecutive frames of each sequence: list of (T_i, N, 3) -> (sum(T_i - 1), N, 3)."""
+    diffs = [np.diff(np.asarray(s, dtype=np.float64), axis=0) for s in sequences if len(s) >= 2]
+    if not diffs:
+        raise InputError("every sequence has fewer than two frames: nothing to learn a motion from")
+    return np.concatenate(diffs)
+
+
+def build_basis(template, faces, groups, components, weights="body", scale=None, name="basis",
+                units="", schedule=PAPER_BODY_SCHEDULE, provenance=None):
+    """PCA basis from registered 4D data (paper section 5.2).
+
+    groups: {name: list of sequences (T_i, N, 3)} in template topology;
+    components: {name: K} the number of fields kept per group.
+    """
+    template = np.asarray(template, dtype=np.float64)
+    blocks, ranges, report, start = [], {}, {}, 0
+    for gname, seqs in groups.items():
+        for s in seqs:
+            if np.asarray(s).shape[1:] != template.shape:
+                raise InputError(f"group '{gname}': a frame has shape {np.asarray(s).shape[1:]} but the template "
+                                 f"has {template.shape}: frames must be registered to the template topology")
+        k = int(components.get(gname, 10))
+        if k < 1:
+            raise InputError(f"group '{gname}': number of components must be >= 1, got {k}")
+        tangents = sequence_tangents(seqs)
+        fields, ratios = principal_fields(tangents, k)
+        blocks.append(fields)
+        ranges[gname] = (start, start + fields.shape[0])
+        start += fields.shape[0]
+        report[gname] = {"tangent_vectors": int(tangents.shape[0]), "components": int(fields.shape[0]),
+                         "requested": k, "explained_variance": float(ratios.sum()),
+                         "variance_ratios": [float(r) for r in ratios]}
+    if scale is None:
+        ext = template.max(0) - template.min(0)
+        scale = float(ext.max())
+    prov = dict(provenance or {})
+    prov["groups"] = report
+    return Basis(template=template, faces=np.asarray(faces), fields=np.concatenate(blocks), groups=ranges,
+                 weights=weights, schedule=schedule, scale=scale, name=name, units=units, provenance=prov)

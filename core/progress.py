@@ -1,0 +1,71 @@
+"""Progress reporting and cancellation shared by every long solve.
+
+One callback type serves the CLI (tqdm) and Blender (status bar): a callable
+taking a ``ProgressEvent``. Cancellation is a ``CancelToken`` checked inside the
+optimisation loop; a cancelled solve raises ``SolveCancelled`` and returns nothing.
+"""
+
+import threading
+from dataclasses import dataclass
+
+from .errors import SolveCancelled
+
+
+@dataclass(frozen=True)
+class ProgressEvent:
+    """fraction in [0, 1] of the whole task, a short message, the current energy if any."""
+
+    task: str
+    fraction: float
+    message: str = ""
+    energy: float | None = None
+
+
+class CancelToken:
+    """Thread-safe cancellation flag: ``cancel()`` from any thread, ``check()`` in the solver."""
+
+    def __init__(self):
+        self._event = threading.Event()
+
+    def cancel(self):
+        self._event.set()
+
+    @property
+    def cancelled(self):
+        return self._event.is_set()
+
+    def check(self):
+        """Raise SolveCancelled if cancellation was requested."""
+        if self._event.is_set():
+            raise SolveCancelled("the solve was cancelled; nothing was written")
+
+
+class Monitor:
+    """What a solver holds: a callback (or None) and a cancel token (or None)."""
+
+    def __init__(self, task, callback=None, cancel=None):
+        self.task, self.callback, self.cancel = task, callback, cancel
+
+    def report(self, fraction, message="", energy=None):
+        if self.callback is not None:
+            self.callback(ProgressEvent(self.task, min(max(float(fraction), 0.0), 1.0), message,
+                                        None if energy is None else float(energy)))
+
+    def check(self):
+        if self.cancel is not None:
+            self.cancel.check()
+
+
+def tqdm_callback(desc, disable=None):
+    """A progress callback drawing a tqdm bar (for the CLI); returns (callback, close)."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=1000, desc=desc, disable=disable, leave=False,
+               bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed} {postfix}")
+
+    def callback(event):
+        bar.n = int(event.fraction * 1000)
+        bar.set_postfix_str(event.message, refresh=False)
+        bar.refresh()
+
+    return callback, bar.close

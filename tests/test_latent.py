@@ -1,0 +1,116 @@
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from core import h2_metric, latent, synthetic
+from core.errors import InputError
+
+
+def small_basis(p=4, subdivisions=2, seed=0):
+    """A template blob and p smooth fields (functions of position)."""
+    v, f = synthetic.blob_mesh(subdivisions, seed=seed)
+    rng = np.random.default_rng(seed)
+    fields = np.stack([0.2 * np.sin(v @ rng.normal(size=(3, 3))) for _ in range(p)])
+    return latent.Basis(template=v, faces=f, fields=fields, groups={"pose": (0, p - 1), "shape": (p - 1, p)},
+                        weights="face", scale=2.0, name="small")
+
+
+def test_decoder_matches_direct_sum():
+    b = small_basis()
+    t, f, h = b.tensors()
+    alpha = torch.tensor([[0.3, -1.0, 0.5, 2.0], [0.0, 0.1, 0.0, -0.2]], dtype=torch.float64)
+    out = latent.decode(t, h, alpha)
+    for k in range(2):
+        direct = t + sum(alpha[k, i] * h[i] for i in range(4))
+        assert torch.allclose(out[k], direct, rtol=1e-13, atol=1e-13)
+
+
+def test_latent_metric_is_pullback_of_h2_metric():
+    b = small_basis()
+    t, f, h = b.tensors()
+    alpha = torch.tensor([0.3, -1.0, 0.5, 2.0], dtype=torch.float64)
+    gbar = latent.latent_metric(t, f, h, alpha, b.weights)
+    q = latent.decode(t, h, alpha)
+    beta = torch.tensor([1.0, 0.5, -2.0, 0.25], dtype=torch.float64)
+    direct = h2_metric.squared_norm(q, f, torch.tensordot(beta, h, dims=1), b.weights)
+    assert torch.isclose(beta @ gbar @ beta, direct, rtol=1e-12)
+    assert torch.isclose(gbar[1, 2], h2_metric.inner_product(q, f, h[1], h[2], b.weights), rtol=1e-12)
+
+
+def test_latent_path_energy_equals_sum_of_metric_matrix_quadratic_forms():
+    b = small_basis()
+    t, f, h = b.tensors()
+    path = torch.tensor(np.random.default_rng(2).normal(size=(4, 4)) * 0.3)
+    e = latent.latent_path_energy(t, f, h, path, b.weights)
+    direct = 0
+    for k in range(3):
+        d = path[k + 1] - path[k]
+        direct = direct + d @ latent.latent_metric(t, f, h, (path[k] + path[k + 1]) / 2, b.weights) @ d * 3
+    assert torch.isclose(e, direct, rtol=1e-10)
+
+
+def test_basis_save_load_roundtrip_keeps_everything(tmp_path):
+    b = small_basis()
+    b.extras["gmm_means"] = np.arange(6.0).reshape(2, 3)
+    latent.save_basis(tmp_path / "b.npz", b)
+    card = json.loads((tmp_path / "b.json").read_text())
+    assert card["n_fields"] == 4 and card["groups"] == {"pose": [0, 3], "shape": [3, 4]}
+    c = latent.load_basis(tmp_path / "b.npz")
+    assert np.array_equal(c.template, b.template) and np.array_equal(c.faces, b.faces)
+    assert np.array_equal(c.fields, b.fields)
+    assert c.groups == b.groups and c.weights == b.weights and c.schedule == b.schedule
+    assert c.scale == 2.0 and c.name == "small"
+    assert np.array_equal(c.extras["gmm_means"], b.extras["gmm_means"])
+    assert c.group_slice("shape") == slice(3, 4)
+
+
+def test_basis_validation_errors_are_precise(tmp_path):
+    v, f = synthetic.blob_mesh(1)
+    h = np.zeros((2,) + v.shape)
+    with pytest.raises(InputError, match="non-finite"):
+        latent.Basis(template=v, faces=f, fields=np.full_like(h, np.nan), groups={})
+    with pytest.raises(InputError, match="fields must be"):
+        latent.Basis(template=v, faces=f, fields=h[:, :-1], groups={})
+    with pytest.raises(InputError, match="group 'pose'"):
+        latent.Basis(template=v, faces=f, fields=h, groups={"pose": (0, 5)})
+    with pytest.raises(InputError, match="exactly once"):
+        latent.Basis(template=v, faces=f, fields=h, groups={"pose": (0, 1)})
+    with pytest.raises(InputError, match="face indices"):
+        latent.Basis(template=v, faces=f + 100, fields=h, groups={})
+    with pytest.raises(InputError, match="does not exist"):
+        latent.load_basis(tmp_path / "missing.npz")
+    with pytest.raises(InputError, match="no bundled basis named"):
+        latent.load_basis("no-such-basis")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(InputError, match="cannot read"):
+        latent.load_basis(tmp_path / "junk.npz")
+
+
+def test_build_basis_recovers_span_of_generating_motions():
+    b = small_basis(p=3)
+    t = b.template
+    pose_dirs, shape_dir = b.fields[:2], b.fields[2]
+    rng = np.random.default_rng(0)
+    seqs = [t + np.cumsum(rng.normal(size=(6, 2)), 0)[:, :, None, None].__mul__(pose_dirs[None]).sum(1)
+            for _ in range(3)]
+    ids = [t + c * shape_dir for c in (0.0, 1.0, -0.5, 2.0)]
+    built = latent.build_basis(t, b.faces, {"pose": seqs, "shape": [np.stack(ids)]}, {"pose": 5, "shape": 3})
+    assert built.groups == {"pose": (0, 2), "shape": (2, 3)}  # rank-limited: 2 pose and 1 shape direction
+    rep = built.provenance["groups"]
+    assert rep["pose"]["explained_variance"] == pytest.approx(1.0)
+    assert rep["pose"]["tangent_vectors"] == 15
+    span = built.fields.reshape(3, -1)
+    q, _ = np.linalg.qr(span.T)
+    for d in list(pose_dirs) + [shape_dir]:
+        d = d.ravel()
+        assert np.linalg.norm(d - q @ (q.T @ d)) < 1e-8 * np.linalg.norm(d)
+
+
+def test_build_basis_rejects_frames_in_another_topology():
+    b = small_basis()
+    with pytest.raises(InputError, match="registered to the template"):
+        latent.build_basis(b.template, b.faces, {"pose": [np.zeros((3, 5, 3))]}, {"pose": 2})
+    with pytest.raises(InputError, match="do not move"):
+        latent.build_basis(b.template, b.faces, {"pose": [np.stack([b.template] * 3)]}, {"pose": 2})
