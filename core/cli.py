@@ -80,6 +80,119 @@ def cmd_path_energy(args):
                 "metric": ",".join(f"{w:g}" for w in weights.as_tuple())}, False, "H2 path energy")
 
 
+def _parse_sequences(specs):
+    """['pose:a.ply,b.ply', ...] -> {group: [list of paths]} (several sequences per group allowed)."""
+    groups = {}
+    for spec in specs:
+        group, sep, files = spec.partition(":")
+        paths = [Path(p) for p in files.split(",") if p]
+        if not sep or not group or len(paths) < 2:
+            raise InputError(f"--sequence '{spec}' must look like GROUP:F1,F2[,...] with at least two frames")
+        groups.setdefault(group, []).append(paths)
+    return groups
+
+
+def _parse_components(specs, groups):
+    out = {}
+    for spec in specs or []:
+        group, sep, k = spec.partition("=")
+        if not sep or group not in groups or not k.isdigit() or int(k) < 1:
+            raise InputError(f"--components '{spec}' must look like GROUP=K with K >= 1 and GROUP one of "
+                             f"{', '.join(groups)}")
+        out[group] = int(k)
+    return out
+
+
+def cmd_build_basis(args):
+    """PCA basis from registered 4D sequences (differences of consecutive frames per group)."""
+    from .latent import build_basis, save_basis
+    from .mesh import load_mesh, validate_mesh
+
+    template, faces = load_mesh(args.template)
+    validate_mesh(template, faces, name=str(args.template))
+    groups = _parse_sequences(args.sequence)
+    components = _parse_components(args.components, groups)
+    sequences = {}
+    for group, seqs in groups.items():
+        sequences[group] = []
+        for files in seqs:
+            frames = []
+            for p in files:
+                v, f = load_mesh(p)
+                if v.shape != template.shape or not np.array_equal(f, faces):
+                    raise InputError(f"{p} is not in the template's topology ({v.shape[0]} vertices, "
+                                     f"template {template.shape[0]}): frames must be registered meshes")
+                frames.append(v)
+            sequences[group].append(np.stack(frames))
+    provenance = {"template": str(args.template),
+                  "sequences": {g: [[str(p) for p in files] for files in s] for g, s in groups.items()}}
+    basis = build_basis(template, faces, sequences, components, weights=args.metric,
+                        name=args.name or args.output.stem, units=args.units, provenance=provenance)
+    save_basis(args.output, basis)
+    rows = {g: f"{b - a} fields, explained variance {basis.provenance['groups'][g]['explained_variance']:.4f}"
+            for g, (a, b) in basis.groups.items()}
+    _print(rows, False, f"wrote {args.output} ({basis.n_fields} fields)")
+
+
+def _codes(basis, paths, callback=None):
+    """Codes of meshes: projection for template-topology meshes, registration for raw scans."""
+    from .latent import project_to_basis
+    from .mesh import load_mesh, validate_mesh
+
+    meshes = [load_mesh(p) for p in paths]
+    for p, (v, f) in zip(paths, meshes):
+        validate_mesh(v, f, name=str(p))
+    registered = [v.shape == basis.template.shape and np.array_equal(f, basis.faces) for v, f in meshes]
+    if all(registered):
+        return [project_to_basis(basis, v)[0] for v, _ in meshes], None
+    from .geodesic import symmetric_match
+
+    return None, symmetric_match(basis, meshes[0], meshes[1], callback=callback)
+
+
+def _geodesic_between(args):
+    import time
+
+    from .geodesic import geodesic
+    from .latent import load_basis
+
+    start = time.perf_counter()
+    basis = load_basis(args.basis)
+    t, f, h = basis.tensors()
+    codes, matched = _codes(basis, [args.a, args.b])
+    if matched is not None:
+        return basis, matched.path, matched.distance, time.perf_counter() - start
+    g = geodesic(t, f, h, codes[0], codes[1], basis.weights, steps=max(args.steps, 3))
+    return basis, g.path, g.distance, time.perf_counter() - start
+
+
+def cmd_distance(args):
+    """Geodesic distance between two meshes in the latent space of a basis."""
+    args.steps = 10
+    _, _, distance, seconds = _geodesic_between(args)
+    _print({"distance": distance, "seconds": seconds}, args.json)
+
+
+def cmd_interpolate(args):
+    """Evenly paced geodesic in-betweens of two meshes, written as T meshes and their codes."""
+    from .geodesic import decode_path, resample_path
+    from .mesh import save_mesh
+
+    if args.steps < 2:
+        raise InputError(f"--steps must be at least 2, got {args.steps}")
+    basis, path, distance, seconds = _geodesic_between(args)
+    t, f, h = basis.tensors()
+    codes = resample_path(t, f, h, path, basis.weights, args.steps)
+    frames = decode_path(t, h, codes)
+    args.output.mkdir(parents=True, exist_ok=True)
+    width = len(str(args.steps - 1))
+    for k, v in enumerate(frames):
+        save_mesh(args.output / f"frame_{k:0{width}d}.ply", v, basis.faces)
+    np.save(args.output / "codes.npy", codes)
+    result = {"distance": distance, "seconds": seconds, "frames": args.steps, "output": str(args.output)}
+    _print(result, args.json, "geodesic interpolation")
+
+
 def cmd_demo(args):
     """Generate two surfaces, save them, and compare them (metrics and path energy)."""
     from . import synthetic
@@ -133,6 +246,29 @@ def build_parser():
                    help="a0,a1,b1,c1,d1,a2 or a preset: body (1,1000,100,1,1,1), face (1,10,10,10,1,1)")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_path_energy)
+
+    p = sub.add_parser("build-basis", help="PCA basis from registered 4D sequences")
+    p.add_argument("template", type=Path)
+    p.add_argument("--sequence", action="append", required=True, metavar="GROUP:F1,F2,...",
+                   help="frames of one registered sequence, in order (repeatable, several per group)")
+    p.add_argument("--components", action="append", metavar="GROUP=K", help="fields kept per group (default 10)")
+    p.add_argument("--metric", default="body", help="metric weights stored with the basis (preset or six numbers)")
+    p.add_argument("--name", default=None)
+    p.add_argument("--units", default="m")
+    p.add_argument("-o", "--output", type=Path, required=True)
+    p.set_defaults(func=cmd_build_basis)
+
+    for name, func, text in (("distance", cmd_distance, "geodesic distance between two meshes"),
+                             ("interpolate", cmd_interpolate, "geodesic in-betweens of two meshes")):
+        p = sub.add_parser(name, help=text)
+        p.add_argument("a", type=Path)
+        p.add_argument("b", type=Path)
+        p.add_argument("--basis", default="humanoid", help="bundled basis name or .npz path")
+        if name == "interpolate":
+            p.add_argument("--steps", type=int, default=10, help="number of frames written, ends included")
+            p.add_argument("-o", "--output", type=Path, required=True)
+        p.add_argument("--json", action="store_true", help="print JSON")
+        p.set_defaults(func=func)
 
     p = sub.add_parser("demo", help="generate two surfaces and compare them")
     p.add_argument("-o", "--output", default="bareesa-demo", help="folder for the generated meshes")

@@ -277,3 +277,19 @@ def build_basis(template, faces, groups, components, weights="body", scale=None,
     prov["groups"] = report
     return Basis(template=template, faces=np.asarray(faces), fields=np.concatenate(blocks), groups=ranges,
                  weights=weights, schedule=schedule, scale=scale, name=name, units=units, provenance=prov)
+
+
+def project_to_basis(basis, verts):
+    """Code of a mesh already in template topology: least squares F(alpha) ~ verts.
+
+    verts (N, 3) -> (alpha (P,), rms vertex residual). Exact for meshes in the
+    span of the basis; otherwise the L2-closest decodable mesh.
+    """
+    verts = np.asarray(verts, dtype=np.float64)
+    if verts.shape != basis.template.shape:
+        raise InputError(f"mesh has {verts.shape[0]} vertices but basis '{basis.name}' has "
+                         f"{basis.template.shape[0]}: register it as a scan instead")
+    a = basis.fields.reshape(basis.n_fields, -1).T.astype(np.float64)
+    alpha, *_ = np.linalg.lstsq(a, (verts - basis.template).ravel(), rcond=None)
+    residual = verts - basis.template - (a @ alpha).reshape(verts.shape)
+    return alpha, float(np.sqrt((residual**2).sum(1).mean()))

@@ -1,0 +1,140 @@
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from core import cli, h2_metric, synthetic
+from core.evaluation import chamfer, hausdorff
+from core.mesh import save_mesh
+from core.varifold import varifold_distance
+
+
+@pytest.fixture
+def meshes(tmp_path):
+    v, f = synthetic.blob_mesh(2, seed=0)
+    w, _ = synthetic.blob_mesh(2, seed=1)
+    s, sf = synthetic.blob_mesh(1, seed=1)
+    paths = {}
+    for name, (a, b) in {"a": (v, f), "b": (w, f), "scan": (s, sf)}.items():
+        paths[name] = tmp_path / f"{name}.ply"
+        save_mesh(paths[name], a, b)
+    return paths, (v, w, f, s, sf)
+
+
+def run(capsys, *argv):
+    rc = cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def test_metrics_json_reports_chamfer_hausdorff_and_squared_varifold(capsys, meshes):
+    paths, (v, w, f, s, sf) = meshes
+    rc, out, _ = run(capsys, "metrics", paths["a"], paths["scan"], "--sigma", "0.3", "--json")
+    assert rc == 0
+    res = json.loads(out)
+    assert res["chamfer"] == pytest.approx(chamfer(v, s))
+    assert res["hausdorff"] == pytest.approx(hausdorff(v, s))
+    expected = varifold_distance(torch.tensor(v), torch.tensor(f), torch.tensor(s), torch.tensor(sf), sigma=0.3)
+    assert res["varifold"] == pytest.approx(float(expected), rel=1e-6)
+    assert res["sigma"] == 0.3
+
+
+def test_metrics_default_sigma_and_kernel_choice(capsys, meshes):
+    paths, _ = meshes
+    rc, out, _ = run(capsys, "metrics", paths["a"], paths["b"], "--json")
+    binet = json.loads(out)
+    rc2, out2, _ = run(capsys, "metrics", paths["a"], paths["b"], "--json", "--kernel", "constant")
+    assert rc == rc2 == 0
+    assert binet["sigma"] > 0 and binet["varifold"] > 0
+    assert json.loads(out2)["varifold"] != pytest.approx(binet["varifold"])
+
+
+def test_path_energy_json_matches_core(capsys, meshes):
+    paths, (v, w, f, _, _) = meshes
+    mid = tmp = paths["a"].with_name("mid.ply")
+    save_mesh(tmp, (v + w) / 2 + 0.01, f)
+    rc, out, _ = run(capsys, "path-energy", paths["a"], mid, paths["b"], "--metric", "face", "--json")
+    assert rc == 0
+    res = json.loads(out)
+    path = torch.tensor(np.stack([v, (v + w) / 2 + 0.01, w]))
+    expected = h2_metric.path_energy(path, torch.tensor(f), h2_metric.PRESETS["face"])
+    assert res["energy"] == pytest.approx(float(expected), rel=1e-10)
+    assert len(res["steps"]) == 2 and res["metric"] == [1, 10, 10, 10, 1, 1]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["metrics", "{a}", "{missing}"], "missing.ply"),
+    (["path-energy", "{a}", "{scan}"], "vertices"),
+    (["path-energy", "{a}", "{b}", "--metric", "1,2"], "six metric weights"),
+    (["metrics", "{a}", "{b}", "--sigma", "-1"], "sigma"),
+])
+def test_errors_print_one_line_without_traceback_and_exit_nonzero(capsys, meshes, argv, message):
+    paths, _ = meshes
+    names = {**{k: str(p) for k, p in paths.items()}, "missing": str(paths["a"].with_name("missing.ply"))}
+    rc, out, err = run(capsys, *[a.format(**names) for a in argv])
+    assert rc == 2
+    assert message in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.fixture
+def sequences(tmp_path):
+    """A template and two registered 'motions' (sequences of frames) written to disk."""
+    v, f = synthetic.blob_mesh(2, seed=0)
+    rng = np.random.default_rng(0)
+    dirs = [0.2 * np.sin(v @ rng.normal(size=(3, 3))) for _ in range(3)]
+    save_mesh(tmp_path / "template.ply", v, f)
+    seqs = {}
+    for name, (d, n) in {"bend": (dirs[0] + 0.5 * dirs[1], 4), "twist": (dirs[1] - dirs[2], 3)}.items():
+        seqs[name] = []
+        for k in range(n):
+            p = tmp_path / f"{name}_{k}.ply"
+            save_mesh(p, v + k / (n - 1) * d, f)
+            seqs[name].append(p)
+    return tmp_path, v, f, seqs
+
+
+def test_build_basis_then_distance_and_interpolate_on_registered_meshes(capsys, sequences):
+    from core.latent import load_basis, project_to_basis
+
+    tmp, v, f, seqs = sequences
+    out = tmp / "b.npz"
+    rc, text, err = run(capsys, "build-basis", tmp / "template.ply",
+                        "--sequence", "pose:" + ",".join(map(str, seqs["bend"])),
+                        "--sequence", "pose:" + ",".join(map(str, seqs["twist"])),
+                        "--components", "pose=4", "--metric", "face", "-o", out)
+    assert rc == 0, err
+    basis = load_basis(out)
+    assert basis.n_fields == 2  # two independent motion directions, rank-limited
+    assert basis.groups == {"pose": (0, 2)} and basis.weights == h2_metric.PRESETS["face"]
+    end = seqs["bend"][-1]
+    rc, text, err = run(capsys, "distance", tmp / "template.ply", end, "--basis", out, "--json")
+    assert rc == 0, err
+    dist = json.loads(text)["distance"]
+    assert dist > 0
+    rc, text, err = run(capsys, "interpolate", tmp / "template.ply", end, "--basis", out, "--steps", "5",
+                        "-o", tmp / "interp", "--json")
+    assert rc == 0, err
+    res = json.loads(text)
+    assert res["distance"] == pytest.approx(dist, rel=1e-3)
+    frames = sorted((tmp / "interp").glob("frame_*.ply"))
+    assert len(frames) == 5
+    codes = np.load(tmp / "interp" / "codes.npy")
+    from core.mesh import load_mesh
+    first, last = load_mesh(frames[0])[0], load_mesh(frames[-1])[0]
+    assert np.abs(first - v).max() < 1e-8
+    assert np.abs(last - load_mesh(end)[0]).max() < 1e-8
+    assert np.allclose(codes[-1], project_to_basis(basis, load_mesh(end)[0])[0])
+
+
+def test_build_basis_rejects_unregistered_frames(capsys, sequences, tmp_path):
+    tmp, v, f, seqs = sequences
+    s, sf = synthetic.blob_mesh(1)
+    save_mesh(tmp / "raw.ply", s, sf)
+    rc, _, err = run(capsys, "build-basis", tmp / "template.ply", "--sequence",
+                     f"pose:{seqs['bend'][0]},{tmp / 'raw.ply'}", "-o", tmp / "x.npz")
+    assert rc == 2 and "not in the template's topology" in err
+    assert not (tmp / "x.npz").exists()
+    rc, _, err = run(capsys, "build-basis", tmp / "template.ply", "--sequence", "pose", "-o", tmp / "x.npz")
+    assert rc == 2 and "GROUP:F1,F2" in err
