@@ -246,13 +246,19 @@ def sequence_tangents(sequences):
 
 
 def build_basis(template, faces, groups, components, weights="body", scale=None, name="basis",
-                units="", schedule=PAPER_BODY_SCHEDULE, provenance=None):
+                units="", schedule=PAPER_BODY_SCHEDULE, provenance=None, elastic=(), elastic_steps=5,
+                callback=None, cancel=None):
     """PCA basis from registered 4D data (paper section 5.2).
 
     groups: {name: list of sequences (T_i, N, 3)} in template topology;
-    components: {name: K} the number of fields kept per group.
+    components: {name: K} the number of fields kept per group; groups named in
+    ``elastic`` use the steps of parametrised H2 geodesics between consecutive
+    meshes instead of plain differences (the paper's shape basis).
     """
     template = np.asarray(template, dtype=np.float64)
+    unknown = set(elastic) - set(groups)
+    if unknown:
+        raise InputError(f"elastic construction asked for unknown groups {', '.join(sorted(unknown))}")
     blocks, ranges, report, start = [], {}, {}, 0
     for gname, seqs in groups.items():
         for s in seqs:
@@ -262,12 +268,20 @@ def build_basis(template, faces, groups, components, weights="body", scale=None,
         k = int(components.get(gname, 10))
         if k < 1:
             raise InputError(f"group '{gname}': number of components must be >= 1, got {k}")
-        tangents = sequence_tangents(seqs)
+        if gname in elastic:
+            from .statistics import elastic_tangents
+
+            tangents = elastic_tangents([np.asarray(x, dtype=np.float64) for x in seqs], faces,
+                                        H2Weights.parse(weights), steps=elastic_steps, callback=callback,
+                                        cancel=cancel)
+        else:
+            tangents = sequence_tangents(seqs)
         fields, ratios = principal_fields(tangents, k)
         blocks.append(fields)
         ranges[gname] = (start, start + fields.shape[0])
         start += fields.shape[0]
         report[gname] = {"tangent_vectors": int(tangents.shape[0]), "components": int(fields.shape[0]),
+                         "construction": "elastic H2 geodesics" if gname in elastic else "frame differences",
                          "requested": k, "explained_variance": float(ratios.sum()),
                          "variance_ratios": [float(r) for r in ratios]}
     if scale is None:

@@ -1,0 +1,139 @@
+"""Shape statistics in latent space (paper sections 4.4, 4.5 and 5.2).
+
+Motion transfer (swap the identity coefficients), the log map at the template
+(initial velocities of boundary-value geodesics), Gaussian mixtures on those
+velocities (scikit-learn) with sampling and shooting, and parametrised H2
+geodesics in full vertex space for elastic shape bases.
+"""
+
+import numpy as np
+import torch
+
+from .errors import InputError
+from .geodesic import geodesic
+from .h2_metric import path_energy
+from .optimize import minimize_lbfgs
+from .progress import Monitor
+from .shooting import initial_velocity, shoot
+
+
+def transfer_motion(frame_codes, identity_code, identity_slice):
+    """Replace the identity coefficients of every frame: (T, P), (P,), slice -> (T, P)."""
+    frames = np.array(frame_codes, dtype=np.float64)
+    identity = np.asarray(identity_code, dtype=np.float64)
+    if frames.ndim != 2 or identity.shape != frames.shape[1:]:
+        raise InputError(f"frame codes (T, P) and an identity code (P,) are needed, got {frames.shape} "
+                         f"and {identity.shape}")
+    frames[:, identity_slice] = identity[identity_slice]
+    return frames
+
+
+def log_map(template, faces, fields, codes, weights, steps=6, callback=None, cancel=None):
+    """Initial velocities at the template (code 0) of the geodesics to each code: (M, P) -> (M, P)."""
+    codes = np.atleast_2d(np.asarray(codes, dtype=np.float64))
+    monitor = Monitor("log map", callback, cancel)
+    out = []
+    for i, code in enumerate(codes):
+        monitor.report(i / len(codes), f"geodesic {i + 1}/{len(codes)}")
+        g = geodesic(template, faces, fields, np.zeros_like(code), code, weights, steps=steps, cancel=cancel)
+        out.append(initial_velocity(g.path))
+    monitor.report(1.0, "done")
+    return np.stack(out)
+
+
+def fit_distribution(velocities, groups, n_components, seed=0):
+    """Gaussian mixture per group on initial velocities -> dict of arrays (storable in a basis).
+
+    velocities (M, P); groups {name: (start, stop)}; n_components {name: K}
+    (clipped to the number of samples). Keys: ``gmm_<group>_{weights,means,covariances}``.
+    """
+    from sklearn.mixture import GaussianMixture
+
+    v = np.asarray(velocities, dtype=np.float64)
+    if v.ndim != 2 or v.shape[0] < 2:
+        raise InputError(f"fitting a distribution needs at least two velocity vectors, got shape {v.shape}")
+    out = {}
+    for name, (a, b) in groups.items():
+        k = int(min(n_components.get(name, 1), v.shape[0]))
+        gmm = GaussianMixture(n_components=k, covariance_type="full", reg_covar=1e-6, random_state=seed,
+                              n_init=2).fit(v[:, a:b])
+        out[f"gmm_{name}_weights"] = gmm.weights_
+        out[f"gmm_{name}_means"] = gmm.means_
+        out[f"gmm_{name}_covariances"] = gmm.covariances_
+    return out
+
+
+def sample_velocities(distribution, groups, n, seed=0):
+    """Draw n initial velocities from a fitted per-group mixture: -> (n, P).
+
+    Groups without a fitted mixture get zero velocity (they keep the template's value).
+    """
+    rng = np.random.default_rng(seed)
+    p = max(b for _, b in groups.values())
+    out = np.zeros((n, p))
+    for name, (a, b) in groups.items():
+        key = f"gmm_{name}_"
+        if key + "weights" not in distribution:
+            continue
+        w = np.asarray(distribution[key + "weights"], dtype=np.float64)
+        means, covs = distribution[key + "means"], distribution[key + "covariances"]
+        comp = rng.choice(len(w), size=n, p=w / w.sum())
+        for c in np.unique(comp):
+            rows = comp == c
+            out[rows, a:b] = rng.multivariate_normal(means[c], covs[c], size=int(rows.sum()))
+    return out
+
+
+def sample_codes(template, faces, fields, distribution, groups, weights, n, seed=0, steps=8,
+                 callback=None, cancel=None):
+    """Random shapes: sample initial velocities, shoot from the template: -> codes (n, P)."""
+    velocities = sample_velocities(distribution, groups, n, seed)
+    monitor = Monitor("sample", callback, cancel)
+    codes = []
+    for i, v in enumerate(velocities):
+        monitor.report(i / n, f"shape {i + 1}/{n}")
+        codes.append(shoot(template, faces, fields, np.zeros_like(v), v, weights, steps=steps, cancel=cancel)[-1])
+    monitor.report(1.0, "done")
+    return np.stack(codes)
+
+
+def vertex_geodesic(verts0, verts1, faces, weights, steps=5, max_iter=300, callback=None, cancel=None):
+    """Parametrised H2 geodesic in full vertex space between same-topology meshes.
+
+    verts0, verts1 (N, 3) numpy; minimises the discrete path energy over the
+    (steps - 2) interior meshes with L-BFGS from the linear blend: -> path (steps, N, 3).
+    """
+    v0, v1 = (np.asarray(v, dtype=np.float64) for v in (verts0, verts1))
+    if v0.shape != v1.shape:
+        raise InputError(f"an elastic geodesic needs two meshes in one topology, got {v0.shape} and {v1.shape}")
+    if steps < 3:
+        return np.stack([v0, v1])
+    t = np.linspace(0, 1, steps)[:, None, None]
+    path = (1 - t) * v0 + t * v1
+    faces_t = torch.as_tensor(np.asarray(faces), dtype=torch.long)
+    ends = torch.from_numpy(path[[0, -1]])
+    shape = path[1:-1].shape
+
+    def energy(x):
+        return path_energy(torch.cat([ends[:1], x.reshape(shape), ends[1:]]), faces_t, weights)
+
+    x, _, _ = minimize_lbfgs(energy, path[1:-1].ravel(), Monitor("elastic geodesic", callback, cancel),
+                             max_iter=max_iter, message="elastic geodesic")
+    path[1:-1] = x.reshape(shape)
+    return path
+
+
+def elastic_tangents(sequences, faces, weights, steps=5, callback=None, cancel=None):
+    """Tangent vectors of H2 geodesics between consecutive meshes of each sequence.
+
+    sequences: list of (T_i, N, 3) -> (sum_i (T_i - 1) * (steps - 1), N, 3): the
+    steps of each elastic geodesic (the paper's shape-basis construction).
+    """
+    out = []
+    for seq in sequences:
+        for a, b in zip(seq[:-1], seq[1:]):
+            out.append(np.diff(vertex_geodesic(a, b, faces, weights, steps, callback=callback, cancel=cancel),
+                               axis=0))
+    if not out:
+        raise InputError("elastic tangents need sequences of at least two meshes")
+    return np.concatenate(out)
