@@ -127,11 +127,27 @@ def cmd_build_basis(args):
     provenance = {"template": str(args.template),
                   "sequences": {g: [[str(p) for p in files] for files in s] for g, s in groups.items()}}
     basis = build_basis(template, faces, sequences, components, weights=args.metric,
-                        name=args.name or args.output.stem, units=args.units, provenance=provenance)
+                        name=args.name or args.output.stem, units=args.units, provenance=provenance,
+                        elastic=tuple(args.elastic or ()))
+    if not args.no_distribution:
+        basis.extras.update(fit_training_distribution(basis, [f for s in sequences.values() for f in s]))
     save_basis(args.output, basis)
     rows = {g: f"{b - a} fields, explained variance {basis.provenance['groups'][g]['explained_variance']:.4f}"
             for g, (a, b) in basis.groups.items()}
     _print(rows, False, f"wrote {args.output} ({basis.n_fields} fields)")
+
+
+def fit_training_distribution(basis, sequences, components=None, seed=0):
+    """Gaussian mixtures on the log maps of a basis' own training frames (random generation)."""
+    from .latent import project_to_basis
+    from .statistics import fit_distribution, log_map
+
+    frames = np.concatenate([np.asarray(s) for s in sequences])
+    codes = np.unique(np.stack([project_to_basis(basis, v)[0] for v in frames]).round(12), axis=0)
+    codes = codes[np.abs(codes).sum(1) > 0]
+    t, f, h = basis.tensors()
+    velocities = log_map(t, f, h, codes, basis.weights, steps=4)
+    return fit_distribution(velocities, basis.groups, components or {"pose": 10, "shape": 6}, seed=seed)
 
 
 def _codes(basis, paths, callback=None):
@@ -175,22 +191,95 @@ def cmd_distance(args):
 
 def cmd_interpolate(args):
     """Evenly paced geodesic in-betweens of two meshes, written as T meshes and their codes."""
-    from .geodesic import decode_path, resample_path
-    from .mesh import save_mesh
+    from .geodesic import resample_path
 
     if args.steps < 2:
         raise InputError(f"--steps must be at least 2, got {args.steps}")
     basis, path, distance, seconds = _geodesic_between(args)
     t, f, h = basis.tensors()
-    codes = resample_path(t, f, h, path, basis.weights, args.steps)
-    frames = decode_path(t, h, codes)
-    args.output.mkdir(parents=True, exist_ok=True)
-    width = len(str(args.steps - 1))
-    for k, v in enumerate(frames):
-        save_mesh(args.output / f"frame_{k:0{width}d}.ply", v, basis.faces)
-    np.save(args.output / "codes.npy", codes)
+    _write_frames(args.output, basis, resample_path(t, f, h, path, basis.weights, args.steps))
     result = {"distance": distance, "seconds": seconds, "frames": args.steps, "output": str(args.output)}
     _print(result, args.json, "geodesic interpolation")
+
+
+def _code_of(basis, path, monitor_desc=None):
+    """Code of one mesh: projection if it is in template topology, else registration of the scan."""
+    from .latent import project_to_basis
+    from .mesh import load_mesh, validate_mesh
+
+    v, f = load_mesh(path)
+    validate_mesh(v, f, name=str(path))
+    if v.shape == basis.template.shape and np.array_equal(f, basis.faces):
+        return project_to_basis(basis, v)[0]
+    from .registration import register
+
+    return register(basis, v, f).code
+
+
+def _write_frames(output, basis, codes, prefix="frame"):
+    from .geodesic import decode_path
+    from .mesh import save_mesh
+
+    t, _, h = basis.tensors()
+    output.mkdir(parents=True, exist_ok=True)
+    width = len(str(len(codes) - 1))
+    for k, v in enumerate(decode_path(t, h, codes)):
+        save_mesh(output / f"{prefix}_{k:0{width}d}.ply", v, basis.faces)
+    np.save(output / "codes.npy", np.asarray(codes))
+
+
+def cmd_extrapolate(args):
+    """Continue the motion A -> B along the latent geodesic by T frames."""
+    import time
+
+    from .latent import load_basis
+    from .shooting import extrapolate
+
+    if args.steps < 1:
+        raise InputError(f"--steps must be at least 1, got {args.steps}")
+    start = time.perf_counter()
+    basis = load_basis(args.basis)
+    a0, a1 = _code_of(basis, args.a), _code_of(basis, args.b)
+    t, f, h = basis.tensors()
+    path = extrapolate(t, f, h, a0, a1, basis.weights, args.steps)
+    _write_frames(args.output, basis, path)
+    _print({"frames": len(path), "seconds": time.perf_counter() - start, "output": str(args.output)},
+           args.json, "geodesic extrapolation (frames 0 and 1 are the inputs)")
+
+
+def cmd_transfer(args):
+    """Put the motion of the given frames on another identity (swap the identity group)."""
+    from .latent import load_basis
+    from .statistics import transfer_motion
+
+    basis = load_basis(args.basis)
+    codes = np.stack([_code_of(basis, p) for p in args.frames])
+    identity = _code_of(basis, args.identity)
+    out = transfer_motion(codes, identity, basis.group_slice(args.group))
+    _write_frames(args.output, basis, out)
+    _print({"frames": len(out), "output": str(args.output)}, args.json, "motion transfer")
+
+
+def cmd_sample(args):
+    """Random shapes: Gaussian mixture on initial velocities at the template, then shoot."""
+    from .latent import load_basis
+    from .statistics import fit_distribution, log_map, sample_codes
+
+    if args.n < 1:
+        raise InputError(f"-n must be at least 1, got {args.n}")
+    basis = load_basis(args.basis)
+    t, f, h = basis.tensors()
+    if args.fit:
+        codes = np.stack([_code_of(basis, p) for p in args.fit])
+        vel = log_map(t, f, h, codes, basis.weights)
+        dist = fit_distribution(vel, basis.groups, {g: args.components for g in basis.groups}, seed=args.seed)
+    else:
+        dist = {k: v for k, v in basis.extras.items() if k.startswith("gmm_")}
+        if not dist:
+            raise InputError(f"basis '{basis.name}' carries no fitted distribution: give --fit FILES")
+    codes = sample_codes(t, f, h, dist, basis.groups, basis.weights, args.n, seed=args.seed)
+    _write_frames(args.output, basis, codes, prefix="sample")
+    _print({"samples": args.n, "seed": args.seed, "output": str(args.output)}, args.json, "random shapes")
 
 
 def cmd_demo(args):
@@ -253,6 +342,10 @@ def build_parser():
                    help="frames of one registered sequence, in order (repeatable, several per group)")
     p.add_argument("--components", action="append", metavar="GROUP=K", help="fields kept per group (default 10)")
     p.add_argument("--metric", default="body", help="metric weights stored with the basis (preset or six numbers)")
+    p.add_argument("--elastic", action="append", metavar="GROUP",
+                   help="build GROUP from elastic H2 geodesics between consecutive frames (paper's shape basis)")
+    p.add_argument("--no-distribution", action="store_true",
+                   help="do not fit the Gaussian mixture on the training frames used by 'sample'")
     p.add_argument("--name", default=None)
     p.add_argument("--units", default="m")
     p.add_argument("-o", "--output", type=Path, required=True)
@@ -269,6 +362,34 @@ def build_parser():
             p.add_argument("-o", "--output", type=Path, required=True)
         p.add_argument("--json", action="store_true", help="print JSON")
         p.set_defaults(func=func)
+
+    p = sub.add_parser("extrapolate", help="continue a motion A -> B along the geodesic")
+    p.add_argument("a", type=Path)
+    p.add_argument("b", type=Path)
+    p.add_argument("--basis", default="humanoid", help="bundled basis name or .npz path")
+    p.add_argument("--steps", type=int, default=10, help="number of new frames")
+    p.add_argument("-o", "--output", type=Path, required=True)
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=cmd_extrapolate)
+
+    p = sub.add_parser("transfer", help="transfer the motion of FRAMES onto another identity")
+    p.add_argument("frames", nargs="+", type=Path)
+    p.add_argument("--identity", type=Path, required=True, help="a mesh (scan or registered) of the identity")
+    p.add_argument("--group", default="shape", help="the identity group of the basis (default: shape)")
+    p.add_argument("--basis", default="humanoid", help="bundled basis name or .npz path")
+    p.add_argument("-o", "--output", type=Path, required=True)
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=cmd_transfer)
+
+    p = sub.add_parser("sample", help="random shapes from the basis' distribution (or one fitted to FILES)")
+    p.add_argument("--basis", default="humanoid", help="bundled basis name or .npz path")
+    p.add_argument("-n", type=int, default=6, help="number of shapes")
+    p.add_argument("--fit", nargs="+", type=Path, help="meshes to fit the distribution to")
+    p.add_argument("--components", type=int, default=3, help="mixture components per group with --fit")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("-o", "--output", type=Path, required=True)
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=cmd_sample)
 
     p = sub.add_parser("demo", help="generate two surfaces and compare them")
     p.add_argument("-o", "--output", default="bareesa-demo", help="folder for the generated meshes")
