@@ -55,6 +55,12 @@ class Monitor:
         if self.cancel is not None:
             self.cancel.check()
 
+    def scaled(self, lo, hi):
+        """A callback for a sub-task that reports into [lo, hi] of this task (or None)."""
+        if self.callback is None:
+            return None
+        return lambda event: self.report(lo + (hi - lo) * event.fraction, event.message, event.energy)
+
 
 def tqdm_callback(desc, disable=None):
     """A progress callback drawing a tqdm bar (for the CLI); returns (callback, close)."""

@@ -60,3 +60,106 @@ def random_rotation(seed=0):
     if np.linalg.det(q) < 0:
         q[:, 0] = -q[:, 0]
     return q
+
+
+# ------------------------------------------------------------------ smooth latent bases
+
+
+def _smooth_field_params(n_fields, seed):
+    rng = np.random.default_rng(seed + 1)
+    return {"a": rng.normal(size=(n_fields, 3)), "d": rng.normal(size=(n_fields, 3)),
+            "freq": rng.uniform(1.0, 2.0, size=n_fields), "phase": rng.uniform(0, 2 * np.pi, size=n_fields),
+            "b": rng.normal(size=(n_fields, 3)), "e": rng.normal(size=(n_fields, 2, 3))}
+
+
+def smooth_sphere_surface(n_fields=6, seed=0, amplitude=0.12):
+    """The smooth map (u (M, 3) unit vectors, alpha (P,)) -> points (M, 3) of a synthetic latent space.
+
+    Template: ``blob(u)`` (a star-shaped stretched sphere); field i:
+    amplitude * (a_i sin(f_i u.d_i + phi_i) + b_i (u.e_i)(u.e'_i)), smooth and low-frequency,
+    so evaluating it on two different samplings of the sphere gives two meshes
+    of (nearly) the same surface F(alpha).
+    """
+    prm = _smooth_field_params(n_fields, seed)
+
+    def surface(u, alpha=None):
+        u = np.asarray(u, dtype=np.float64)
+        u = u / np.linalg.norm(u, axis=1, keepdims=True)
+        out = blob(u, seed=seed)
+        if alpha is not None:
+            alpha = np.asarray(alpha, dtype=np.float64)
+            out = out + np.tensordot(alpha, smooth_sphere_fields(u, prm, amplitude), axes=1)
+        return out
+
+    return surface
+
+
+def smooth_sphere_fields(u, prm, amplitude):
+    """Fields of :func:`smooth_sphere_surface` at unit vectors u (M, 3): -> (P, M, 3)."""
+    wave = np.sin(prm["freq"][:, None] * (prm["d"] @ u.T) + prm["phase"][:, None])       # (P, M)
+    quad = np.einsum("pm,pm->pm", prm["e"][:, 0] @ u.T, prm["e"][:, 1] @ u.T)              # (P, M)
+    return amplitude * (wave[:, :, None] * prm["a"][:, None, :] + quad[:, :, None] * prm["b"][:, None, :])
+
+
+def smooth_sphere_basis(subdivisions=3, n_fields=6, seed=0, amplitude=0.12, schedule=None):
+    """A small synthetic latent space sampled on icosphere(subdivisions) -> (Basis, surface).
+
+    ``surface(u, alpha)`` is the generating map of :func:`smooth_sphere_surface`:
+    ``surface(*resampled_sphere(...)[0], alpha)`` is a differently meshed copy of
+    F(alpha). Metric weights "face"; the schedule is short, for tests.
+    """
+    from .latent import Basis, Level
+
+    u, faces = icosphere(subdivisions)
+    surface = smooth_sphere_surface(n_fields, seed, amplitude)
+    prm = _smooth_field_params(n_fields, seed)
+    fields = smooth_sphere_fields(u, prm, amplitude)
+    template = surface(u)
+    if schedule is None:
+        schedule = (Level(0.25, 1e3, 1, 60), Level(0.15, 1e6, 2, 100))
+    basis = Basis(template=template, faces=faces, fields=fields, groups={"all": (0, n_fields)},
+                  weights="face", schedule=schedule, scale=float((template.max(0) - template.min(0)).max()),
+                  name=f"smooth_sphere_{n_fields}", units="")
+    return basis, surface
+
+
+def resampled_sphere(subdivisions=3, seed=0, jitter=0.15):
+    """A different triangulation of the unit sphere: -> u (N, 3) unit vectors, faces (F, 3).
+
+    The icosphere is randomly rotated, its vertices jittered tangentially by
+    ``jitter`` x the mean edge length and renormalised, and the vertex and face
+    orders are shuffled, so no vertex or face coincides with the plain icosphere's.
+    """
+    rng = np.random.default_rng(seed)
+    u, faces = icosphere(subdivisions)
+    u = u @ random_rotation(seed + 7).T
+    edge = np.linalg.norm(u[faces[:, 0]] - u[faces[:, 1]], axis=1).mean()
+    u = u + jitter * edge * rng.uniform(-1, 1, size=u.shape)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    perm = rng.permutation(len(u))
+    inverse = np.empty_like(perm)
+    inverse[perm] = np.arange(len(u))
+    return u[perm], inverse[faces][rng.permutation(len(faces))]
+
+
+def remesh_same_surface(verts, faces, seed=0):
+    """A different triangulation of exactly the same piecewise-linear surface: -> (N', 3), (4F, 3).
+
+    Every edge gets a new vertex at a random position along it (30-70%), every
+    triangle is split into four, and vertex and face orders are shuffled: three
+    quarters of the vertices are new and no face is kept, but the surface is unchanged.
+    """
+    rng = np.random.default_rng(seed)
+    verts, faces = np.asarray(verts, dtype=np.float64), np.asarray(faces, dtype=np.int64)
+    directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    edges, inverse = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True)
+    t = rng.uniform(0.3, 0.7, size=(len(edges), 1))
+    new = (1 - t) * verts[edges[:, 0]] + t * verts[edges[:, 1]]
+    m01, m12, m20 = (len(verts) + inverse.reshape(-1, 3)).T
+    a, b, c = faces.T
+    split = np.concatenate([np.stack(x, 1) for x in ((a, m01, m20), (m01, b, m12), (m20, m12, c), (m01, m12, m20))])
+    all_verts = np.concatenate([verts, new])
+    perm = rng.permutation(len(all_verts))
+    rank = np.empty_like(perm)
+    rank[perm] = np.arange(len(perm))
+    return all_verts[perm], rank[split][rng.permutation(len(split))]

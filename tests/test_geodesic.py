@@ -77,3 +77,28 @@ def test_bad_codes_raise_input_error():
         geodesic.geodesic(t, f, h, np.zeros(3), np.ones(4), b.weights)
     with pytest.raises(InputError, match="NaN"):
         geodesic.geodesic(t, f, h, np.full(4, np.nan), np.ones(4), b.weights)
+
+
+def test_symmetric_matching_of_two_raw_scans_recovers_codes_and_geodesic():
+    basis, surface = synthetic.smooth_sphere_basis(subdivisions=2, n_fields=6, seed=0)
+    rng = np.random.default_rng(2)
+    codes = 0.7 * rng.normal(size=(2, 6))
+    rot = synthetic.random_rotation(9)
+    scans = []
+    for k, c in enumerate(codes):  # both scans remeshed differently, in one common (rotated, scaled) frame
+        u, faces = synthetic.resampled_sphere(2, seed=10 + k)
+        scans.append((2.0 * surface(u, c) @ rot.T + [1.0, 0.0, -2.0], faces))
+    events = []
+    m = geodesic.symmetric_match(basis, scans[0], scans[1], steps=5, callback=events.append)
+    assert np.abs(m.path[0] - codes[0]).max() < 0.03 * np.abs(codes).max()
+    assert np.abs(m.path[-1] - codes[1]).max() < 0.03 * np.abs(codes).max()
+    t, f, h = basis.tensors()
+    truth = geodesic.geodesic(t, f, h, codes[0], codes[1], basis.weights, steps=5)
+    assert m.distance == pytest.approx(truth.distance, rel=0.05)
+    # the frames come back in the scans' frame: the ends overlay the scans
+    ends = m.vertices(t, h, m.path[[0, -1]])
+    truth_ends = [2.0 * surface(synthetic.icosphere(2)[0], c) @ rot.T + [1.0, 0.0, -2.0] for c in codes]
+    for e, tr in zip(ends, truth_ends):
+        assert np.abs(e - tr).max() < 0.03 * np.abs(tr).max()
+    fractions = [e.fraction for e in events]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0

@@ -1,0 +1,656 @@
+r"""Latent code retrieval of an unregistered scan (paper section 4.1), with rigid pre-alignment.
+
+Given a basis (template q-bar, fields h_i, metric weights, schedule) and a scan q with any
+vertices and faces, ``register`` minimises over discrete latent paths
+alpha = (alpha(0) = 0, alpha(1/T), ..., alpha(1))  (P*T free variables)
+
+    weight * [ Gamma(S(F(alpha(1))), T(q)) + landmark term ]  +  E(alpha),
+
+where Gamma is the squared varifold distance at scale sigma (``core.varifold``), E the discrete
+H2 path energy of the decoded path (``h2_metric.path_energy``; this is the paper's energy
+Gamma + (1/lambda) E multiplied by lambda = ``weight``), T the similarity that maps the scan
+into the template frame (the pre-alignment) and S a small similarity (rotation, translation,
+log-scale; 7 variables) optimised jointly with the path, so that the pre-alignment is refined
+at every level (``refine_transform``). The schedule is multiscale (sigma decreasing, weight
+and steps increasing); each level is warm-started from the last, its latent path resampled
+linearly in time to the new number of steps.
+
+Pre-alignment (``align_to_template``): both surfaces are normalised (area-weighted centroid, RMS radius);
+candidate rotations map the principal axes of the scan's area-weighted second moments onto the
+template's (the 24 proper signed permutations, so near-equal moments and any axis order are
+covered) plus the identity; each is scored by a coarse binet varifold (faces binned into cubic
+cells, each cell keeping its area-weighted centroid and orientation tensor sum a n n^T, which is
+exact for the binet kernel up to the binning of positions); the best few are refined by
+L-BFGS over (axis-angle, translation, log-scale) at a coarse then a finer sigma. A deformed
+scan of a nearly symmetric template can match a flipped template better than the right one,
+so ``register`` runs its first level from each distinct candidate whose varifold is within
+PREALIGN_RATIO of the best and keeps the lowest objective (the latent fit decides). The binet
+kernel ignores normal orientation, so inconsistently oriented scans align as well.
+
+Frames: registration happens in the template frame; ``RegistrationResult.vertices`` are mapped
+back with the inverse similarity, so they overlay the scan in the scan's units.
+"""
+
+import math
+import time
+from dataclasses import dataclass, field
+from itertools import permutations, product
+
+import numpy as np
+import torch
+
+from . import h2_metric
+from .errors import InputError, MeshError
+from .evaluation import chamfer
+from .h2_metric import H2Weights
+from .latent import Level, decode
+from .mesh import validate_mesh
+from .optimize import minimize_lbfgs
+from .progress import Monitor
+from .varifold import VarifoldLoss
+
+#: Pre-alignment sigmas (scoring/refinement, final refinement), in units of the RMS radius.
+PREALIGN_SIGMAS = (0.5, 0.25)
+PREALIGN_CELL = 0.5         # bin size of the binned measure, in units of its sigma
+PREALIGN_REFINE = 8         # candidates refined at the coarse sigma
+PREALIGN_KEEP = 6           # distinct ones refined at the finer sigma and tried by the first level
+PREALIGN_DISTINCT = 20.0    # degrees between two distinct candidates
+PREALIGN_RATIO = 4.0        # candidates whose varifold is within this factor of the best's are tried
+PREALIGN_MAX_ITER = 40
+PREALIGN_FRACTION = 0.1     # share of the progress bar given to the pre-alignment
+#: L-BFGS stops a level when an iteration lowers the objective by less than this relative amount
+#: (the objective is dominated by weight x varifold; later digits only polish the path's interior)
+LEVEL_FTOL = 1e-9
+BIN_CELL = 0.4              # cell size of the binned varifold, in units of sigma
+BIN_GAIN = 0.05             # "auto" bins a level when that leaves at most this share of face pairs
+
+
+# --------------------------------------------------------------------------- similarity
+
+
+def _rotation_np(w):
+    """Rotation matrix of an axis-angle vector: (3,) -> (3, 3) numpy."""
+    return _rotation(torch.as_tensor(np.asarray(w, dtype=np.float64))).numpy()
+
+
+def _rotation(w):
+    """Rotation matrix of an axis-angle vector (differentiable, exact at 0): (3,) -> (3, 3)."""
+    z = torch.zeros((), dtype=w.dtype, device=w.device)
+    skew = torch.stack([torch.stack([z, -w[2], w[1]]), torch.stack([w[2], z, -w[0]]),
+                        torch.stack([-w[1], w[0], z])])
+    return torch.linalg.matrix_exp(skew)
+
+
+@dataclass(frozen=True, eq=False)
+class Similarity:
+    """The map x -> scale * rotation @ x + translation (scan frame -> template frame).
+
+    rotation (3, 3) proper orthogonal, scale > 0, translation (3,).
+    """
+
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    scale: float = 1.0
+    translation: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self):
+        r = np.array(self.rotation, dtype=np.float64).reshape(3, 3)
+        t = np.array(self.translation, dtype=np.float64).reshape(3)
+        s = float(self.scale)
+        if not (np.isfinite(r).all() and np.isfinite(t).all() and math.isfinite(s) and s > 0):
+            raise InputError(f"invalid similarity: scale {s}, rotation/translation finite: "
+                             f"{bool(np.isfinite(r).all())}/{bool(np.isfinite(t).all())}")
+        if np.abs(r @ r.T - np.eye(3)).max() > 1e-6 or np.linalg.det(r) < 0:
+            raise InputError("similarity rotation must be a proper rotation matrix (R R^T = I, det +1)")
+        for a in (r, t):
+            a.flags.writeable = False
+        object.__setattr__(self, "rotation", r)
+        object.__setattr__(self, "translation", t)
+        object.__setattr__(self, "scale", s)
+
+    def _like(self, points):
+        if isinstance(points, torch.Tensor):
+            as_t = lambda a: torch.tensor(a.tolist(), dtype=points.dtype, device=points.device)  # noqa: E731
+            return as_t(self.rotation), as_t(self.translation)
+        return self.rotation, self.translation
+
+    def apply(self, points):
+        """Scan frame -> template frame: (..., 3) ndarray or tensor -> same type."""
+        r, t = self._like(points)
+        return self.scale * points @ r.T + t
+
+    def invert(self, points):
+        """Template frame -> scan frame: (..., 3) ndarray or tensor -> same type."""
+        r, t = self._like(points)
+        return ((points - t) / self.scale) @ r
+
+    def compose(self, other):
+        """The similarity ``self o other`` (apply ``other`` first)."""
+        return Similarity(self.rotation @ other.rotation, self.scale * other.scale,
+                          self.scale * self.rotation @ other.translation + self.translation)
+
+    def inverse(self):
+        """The inverse similarity."""
+        return Similarity(self.rotation.T, 1.0 / self.scale, -(self.rotation.T @ self.translation) / self.scale)
+
+    def to_dict(self):
+        """JSON-ready {"rotation": 3x3 list, "scale": s, "translation": [x, y, z]}."""
+        return {"rotation": self.rotation.tolist(), "scale": self.scale,
+                "translation": self.translation.tolist()}
+
+    @classmethod
+    def from_dict(cls, d):
+        """Inverse of :meth:`to_dict`."""
+        try:
+            return cls(d["rotation"], d["scale"], d["translation"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"not a similarity record: {d!r}") from exc
+
+
+def _delta_similarity(params, center, units):
+    """Similarity x -> c + e^l R(w) (x - c) + tau of params (w, tau, l) / units (7,) numpy."""
+    p = np.asarray(params) * units
+    r = _rotation_np(p[:3])
+    s = float(np.exp(p[6]))
+    return Similarity(r, s, center - s * r @ center + p[3:6])
+
+
+# --------------------------------------------------------------------------- pre-alignment
+
+
+def surface_moments(verts, faces, face_weights=None):
+    """Weighted area, centroid (3,) and second moment about it (3, 3) of a surface: exact integrals.
+
+    verts (N, 3), faces (F, 3), face_weights (F,) or None; the second moment is
+    int (x - c)(x - c)^T dA / A, so sqrt of its trace is the RMS radius.
+    """
+    p = np.asarray(verts, dtype=np.float64)[np.asarray(faces)]
+    a = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    if face_weights is not None:
+        a = a * face_weights
+    total = a.sum()
+    if not total > 0:
+        raise MeshError("the scan has zero (weighted) surface area; nothing to register")
+    center = (a[:, None] * p.mean(1)).sum(0) / total
+    q = p - center
+    s = q.sum(1)
+    # int over a triangle of x x^T = A/12 (sum_i q_i q_i^T + s s^T), s = sum_i q_i
+    second = np.einsum("f,fik,fil->kl", a, q, q) + np.einsum("f,fk,fl->kl", a, s, s)
+    return float(total), center, second / (12.0 * total)
+
+
+def _coarse_measure(points, faces, face_weights, cell):
+    """Faces binned into cubic cells -> centroids (C, 3), orientation tensors sum a n n^T (C, 9)."""
+    p = points[faces]
+    cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    norm = np.linalg.norm(cross, axis=1)
+    a = 0.5 * norm * (1.0 if face_weights is None else face_weights)
+    keep = a > 0
+    a, n, c = a[keep], cross[keep] / norm[keep, None], p[keep].mean(1)
+    _, inv = np.unique(np.floor(c / cell).astype(np.int64), axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    area = np.bincount(inv, a)
+    x = np.stack([np.bincount(inv, a * c[:, k]) for k in range(3)], 1) / area[:, None]
+    nn = a[:, None] * (n[:, :, None] * n[:, None, :]).reshape(-1, 9)
+    tensors = np.stack([np.bincount(inv, nn[:, k]) for k in range(9)], 1)
+    return torch.from_numpy(x), torch.from_numpy(tensors)
+
+
+class _CoarseVarifold:
+    """Binet varifold of binned measures against a fixed target; the source moves by a similarity."""
+
+    def __init__(self, target, source, sigma):
+        self.g = 1.0 / sigma**2
+        self.xt, self.st = target
+        self.xs, self.ss = source
+        self.self_t = float(self._inner(self.xt, self.st, self.xt, self.st))
+
+    def _inner(self, x, s, y, t):
+        d2 = ((x * x).sum(1)[:, None] + (y * y).sum(1)[None, :] - 2 * x @ y.T).clamp_min(0)
+        return (torch.exp(-self.g * d2) * (s @ t.T)).sum()
+
+    def __call__(self, params, base):
+        """Squared distance after x -> e^l R(w) base x + tau; params (w, tau, l) (7,) tensor."""
+        r = _rotation(params[:3]) @ base
+        scale = torch.exp(params[6])
+        x = scale * self.xs @ r.T + params[3:6]
+        s = (scale**2 * (r @ self.ss.reshape(-1, 3, 3) @ r.T)).reshape(-1, 9)
+        return self.self_t - 2 * self._inner(x, s, self.xt, self.st) + self._inner(x, s, x, s)
+
+
+def _candidate_rotations(axes_t, axes_s):
+    """Rotations mapping the scan's principal axes onto the template's (24) plus the identity."""
+    out = []
+    for perm in permutations(range(3)):
+        for signs in product((1.0, -1.0), repeat=3):
+            q = np.zeros((3, 3))
+            q[list(perm), range(3)] = signs
+            r = axes_t @ q @ axes_s.T
+            if np.linalg.det(r) > 0:
+                out.append(r)
+    out.append(np.eye(3))
+    return out
+
+
+def _rotation_angle(a, b):
+    """Angle in degrees between two rotation matrices."""
+    return math.degrees(math.acos(min(1.0, max(-1.0, (np.trace(a @ b.T) - 1) / 2))))
+
+
+def prealign_candidates(template_verts, template_faces, scan_verts, scan_faces, scan_face_weights=None,
+                        keep=PREALIGN_KEEP, monitor=None, progress=(0.0, 1.0)):
+    """Distinct candidate alignments of a scan to a template, best first: -> [(varifold, Similarity)].
+
+    template (N, 3), (F, 3); scan (M, 3), (G, 3); scan_face_weights (G,) or None (zero-weight
+    faces are ignored). Each Similarity maps scan coordinates into the template frame; the
+    varifold is the (binned, binet) squared distance at the finer pre-alignment sigma between
+    the normalised template and the mapped scan. At most ``keep`` candidates, pairwise more
+    than PREALIGN_DISTINCT degrees apart.
+    """
+    monitor = monitor or Monitor("prealign")
+    lo, hi = progress
+    tv, tf = np.asarray(template_verts, np.float64), np.asarray(template_faces, np.int64)
+    sv, sf = np.asarray(scan_verts, np.float64), np.asarray(scan_faces, np.int64)
+    _, ct, mt = surface_moments(tv, tf)
+    _, cs, ms = surface_moments(sv, sf, scan_face_weights)
+    rho_t, rho_s = math.sqrt(np.trace(mt)), math.sqrt(np.trace(ms))
+    yt, zs = (tv - ct) / rho_t, (sv - cs) / rho_s
+    candidates = _candidate_rotations(np.linalg.eigh(mt)[1], np.linalg.eigh(ms)[1])
+
+    def measures(sigma):
+        cell = PREALIGN_CELL * sigma
+        return (_coarse_measure(yt, tf, None, cell), _coarse_measure(zs, sf, scan_face_weights, cell))
+
+    coarse = _CoarseVarifold(*measures(PREALIGN_SIGMAS[0]), PREALIGN_SIGMAS[0])
+    zero = torch.zeros(7, dtype=torch.float64)
+    scores = []
+    for r in candidates:
+        monitor.check()
+        with torch.no_grad():
+            scores.append(float(coarse(zero, torch.from_numpy(r))))
+    span = (hi - lo) / (PREALIGN_REFINE + keep + 1)
+    monitor.report(lo + span, "pre-alignment: candidates scored", min(scores))
+
+    def refine(obj, r, x0, k):
+        x, value, _ = minimize_lbfgs(lambda p: obj(p, torch.from_numpy(r)), x0, monitor,
+                                     max_iter=PREALIGN_MAX_ITER, progress=(lo + k * span, lo + (k + 1) * span),
+                                     message="pre-alignment", gtol=1e-9, ftol=1e-10)
+        return _rotation_np(x[:3]) @ r, x, value
+
+    stage = []
+    for k, i in enumerate(np.argsort(scores)[:PREALIGN_REFINE]):
+        r, x, value = refine(coarse, candidates[i], np.zeros(7), k + 1)
+        stage.append((value, r, x))
+    stage.sort(key=lambda s: s[0])
+    distinct = []
+    for value, r, x in stage:
+        if all(_rotation_angle(r, d[1]) > PREALIGN_DISTINCT for d in distinct):
+            distinct.append((value, r, x))
+    fine = _CoarseVarifold(*measures(PREALIGN_SIGMAS[1]), PREALIGN_SIGMAS[1])
+    out = []
+    for k, (_, r0, x0) in enumerate(distinct[:keep]):
+        x0 = np.concatenate([np.zeros(3), x0[3:]])
+        r, x, value = refine(fine, r0, x0, PREALIGN_REFINE + 1 + k)
+        scale = rho_t * math.exp(x[6]) / rho_s
+        out.append((value / fine.self_t, Similarity(r, scale, ct + rho_t * x[3:6] - scale * r @ cs)))
+    out.sort(key=lambda c: c[0])
+    monitor.report(hi, "pre-alignment done", out[0][0])
+    return out
+
+
+def align_to_template(template_verts, template_faces, scan_verts, scan_faces, scan_face_weights=None,
+                      monitor=None, progress=(0.0, 1.0)):
+    """Rigid + uniform-scale alignment of a scan to a template from any initial orientation.
+
+    template (N, 3), (F, 3); scan (M, 3), (G, 3); scan_face_weights (G,) or None -> the
+    Similarity mapping scan coordinates into the template frame (best of ``prealign_candidates``).
+    """
+    return prealign_candidates(template_verts, template_faces, scan_verts, scan_faces, scan_face_weights,
+                               keep=1, monitor=monitor, progress=progress)[0][1]
+
+
+# --------------------------------------------------------------------------- binned varifold
+
+
+def _cell_groups(points, cell):
+    """Index of the cubic cell of each point: (F, 3) numpy -> groups (F,) int64, number of cells."""
+    _, inv = np.unique(np.floor(points / cell).astype(np.int64), axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    return inv, int(inv.max()) + 1
+
+
+def _binned_measure(centers, normals, areas, groups, n_groups, kernel):
+    """Sums of a face measure over groups -> centroids (C, 3), kernel features (C, K).
+
+    The features make the orientation kernel a dot product, so a group of faces is exact for it:
+    binet (n.n')^2 = <n n^T, n' n'^T>: sum a n n^T (9); linear: sum a n (3); constant: sum a (1).
+    """
+    total = areas.new_zeros(n_groups).index_add(0, groups, areas)
+    moment = centers.new_zeros(n_groups, 3).index_add(0, groups, areas[:, None] * centers)
+    x = moment / total.clamp_min(torch.finfo(total.dtype).tiny)[:, None]
+    if kernel == "binet":
+        per_face = (normals[:, :, None] * normals[:, None, :]).reshape(-1, 9)
+    elif kernel == "linear":
+        per_face = normals
+    else:
+        per_face = torch.ones_like(areas)[:, None]
+    feat = areas.new_zeros(n_groups, per_face.shape[1]).index_add(0, groups, areas[:, None] * per_face)
+    return x, feat
+
+
+class BinnedVarifoldLoss:
+    """Squared varifold distance with both measures summed over cubic cells of size BIN_CELL x sigma.
+
+    For sigma much larger than the faces (the coarse levels of a schedule) this replaces
+    F x (F + G) face pairs by C x (C + D) cell pairs. The target (scan) is binned once; the
+    source's faces are grouped once (by their cells at construction) and each call sums the
+    moving faces over these fixed groups (differentiable). Orientation is exact; positions are
+    approximated by each group's centroid (relative kernel error ~ (cell / sigma)^2 / 4).
+    """
+
+    def __init__(self, source_verts, faces, target_verts, target_faces, sigma, kernel="binet",
+                 target_weights=None, cell=None):
+        from .varifold import KERNELS, varifold_measure
+
+        if kernel not in KERNELS:
+            raise InputError(f"unknown varifold kernel {kernel!r}; choose one of {sorted(KERNELS)}")
+        self.g, self.kernel = 1.0 / sigma**2, kernel
+        cell = BIN_CELL * sigma if cell is None else cell
+        centers = varifold_measure(source_verts.detach(), faces)[0]
+        groups, self.n_groups = _cell_groups(centers.cpu().numpy(), cell)
+        self.groups = torch.as_tensor(groups, device=source_verts.device)
+        c, n, a = varifold_measure(target_verts, target_faces, target_weights)
+        t_groups, n_t = _cell_groups(c.cpu().numpy(), cell)
+        x, feat = _binned_measure(c, n, a, torch.as_tensor(t_groups, device=c.device), n_t, kernel)
+        keep = feat.abs().sum(1) > 0
+        self.target = (x[keep], feat[keep])
+        self.n_target = int(keep.sum())
+        with torch.no_grad():
+            self.self_t = self._inner(*self.target, *self.target)
+
+    def _inner(self, x, f, y, h, chunk=2**22):
+        out = x.new_zeros(())
+        rows = max(1, chunk // max(1, y.shape[0]))
+        for s in range(0, x.shape[0], rows):
+            d = x[s:s + rows, None, :] - y[None, :, :]
+            out = out + (torch.exp(-self.g * (d * d).sum(-1)) * (f[s:s + rows] @ h.T)).sum()
+        return out
+
+    def __call__(self, verts, faces):
+        """Squared binned distance of the mesh (verts (N, 3), faces (F, 3)) to the target -> scalar."""
+        from .varifold import varifold_measure
+
+        x, f = _binned_measure(*varifold_measure(verts, faces), self.groups, self.n_groups, self.kernel)
+        return self._inner(x, f, x, f) - 2 * self._inner(x, f, *self.target) + self.self_t
+
+
+# --------------------------------------------------------------------------- registration
+
+
+@dataclass
+class RegistrationResult:
+    """Latent code of a scan and the registered template.
+
+    code (P,); vertices (N, 3) registered template in the scan's frame and units; path (T+1, P)
+    the final latent path from 0 to code; transform the similarity scan -> template frame
+    (pre-alignment refined by the registration: vertices = transform.invert(F(code)));
+    levels one dict per schedule level {sigma, weight, steps, iterations, energy, varifold,
+    objective, binned, seconds}; varifold the squared varifold residual at the finest sigma (template
+    frame); chamfer between vertices and the scan (scan frame); seconds of wall time;
+    prealignment the candidate alignment the registration started from.
+    """
+
+    code: np.ndarray
+    vertices: np.ndarray
+    path: np.ndarray
+    transform: Similarity
+    levels: list
+    varifold: float
+    chamfer: float
+    seconds: float
+    prealignment: Similarity = None
+
+    def to_json(self):
+        """JSON-ready summary {code, varifold, chamfer, seconds, levels, transform}."""
+        return {"code": [float(c) for c in self.code], "varifold": float(self.varifold),
+                "chamfer": float(self.chamfer), "seconds": float(self.seconds),
+                "levels": [{k: (float(v) if isinstance(v, float) else v) for k, v in lv.items()}
+                           for lv in self.levels],
+                "transform": self.transform.to_dict()}
+
+
+def resample_in_time(path, steps):
+    """Linear resampling in time of a latent path from 0: (T+1, P) -> (steps+1, P)."""
+    path = np.asarray(path, dtype=np.float64)
+    t_old = np.linspace(0.0, 1.0, path.shape[0])
+    t_new = np.linspace(0.0, 1.0, steps + 1)
+    return np.stack([np.interp(t_new, t_old, path[:, i]) for i in range(path.shape[1])], 1)
+
+
+def _path_from_variables(v, ramp):
+    """Latent path (T+1, P) from its variables (T, P): the end code alpha(1), then the deviations
+    d_k of alpha(k/T) from the straight line k/T alpha(1) (k = 1..T-1); ramp (T+1, 1) = k/T.
+
+    The end code carries the stiff varifold term, the deviations only the path energy, so the
+    two blocks decouple and L-BFGS converges in far fewer iterations than on the raw path.
+    """
+    zero = v.new_zeros(1, v.shape[1])
+    return ramp * v[:1] + torch.cat([zero, v[1:], zero])
+
+
+def _variables_from_path(path):
+    """Inverse of ``_path_from_variables``: path (T+1, P) from 0 -> variables (T, P)."""
+    ramp = np.linspace(0.0, 1.0, path.shape[0])[:, None]
+    return np.concatenate([path[-1:], (path - ramp * path[-1])[1:-1]])
+
+
+def _check_schedule(schedule):
+    try:
+        levels = tuple(lv if isinstance(lv, Level) else Level(**lv) for lv in schedule)
+    except TypeError as err:
+        raise InputError(f"a schedule is a sequence of Level(sigma, weight, steps, max_iter): {err}") from None
+    if not levels:
+        raise InputError("the registration schedule is empty")
+    return levels
+
+
+def _check_face_weights(weights, n_faces):
+    if weights is None:
+        return None
+    w = np.asarray(weights, dtype=np.float64)
+    if w.shape != (n_faces,):
+        raise InputError(f"scan face weights must have shape ({n_faces},), one per scan face, got {w.shape}")
+    if not np.isfinite(w).all() or (w < 0).any():
+        raise InputError("scan face weights must be finite and >= 0")
+    if not (w > 0).any():
+        raise InputError("every scan face weight is zero: nothing to register")
+    return w
+
+
+def _check_landmarks(landmarks, n_verts):
+    """[(template vertex, scan xyz[, weight]), ...] -> indices (L,), points (L, 3), weights (L,)."""
+    if landmarks is None or len(landmarks) == 0:
+        return None
+    idx, pts, wts = [], [], []
+    for k, lm in enumerate(landmarks):
+        if len(lm) not in (2, 3):
+            raise InputError(f"landmark {k}: expected (template vertex index, (x, y, z)[, weight]), got {lm!r}")
+        i = lm[0]
+        if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or not 0 <= i < n_verts:
+            raise InputError(f"landmark {k}: template vertex index {i!r} is not an integer in 0..{n_verts - 1}")
+        p = np.asarray(lm[1], dtype=np.float64)
+        if p.shape != (3,) or not np.isfinite(p).all():
+            raise InputError(f"landmark {k}: scan point must be 3 finite coordinates, got {lm[1]!r}")
+        w = float(lm[2]) if len(lm) == 3 else 1.0
+        if not (math.isfinite(w) and w >= 0):
+            raise InputError(f"landmark {k}: weight must be finite and >= 0, got {w}")
+        idx.append(int(i))
+        pts.append(p)
+        wts.append(w)
+    if sum(wts) <= 0:
+        return None
+    return np.array(idx), np.stack(pts), np.array(wts)
+
+
+def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, landmarks=None,
+             landmark_weight=1.0, scan_face_weights=None, metric=None, kernel="binet", backend="auto",
+             binning="auto", refine_transform=None, init_code=None, callback=None, cancel=None, dtype=torch.float64,
+             device="cpu"):
+    """Latent code of an unregistered scan: basis, scan (M, 3), (G, 3) -> RegistrationResult.
+
+    schedule: Levels (default basis.schedule); prealign: align the scan to the template first
+    (else it must be in the template frame already); landmarks: [(template vertex, scan xyz
+    [, weight])], adding weight * landmark_weight * A * sum_i w_i |S F(alpha)_i - T p_i|^2 / sum w
+    (A the template area: comparable to the varifold of a surface offset by the same distance);
+    scan_face_weights (G,) >= 0 (0 ignores a face, e.g. a floor); metric: H2 weights (default
+    the basis'); kernel, backend: of the varifold (``core.varifold``); binning: "auto" evaluates
+    a level's varifold on cell sums (``BinnedVarifoldLoss``) when sigma is so large that this
+    cuts the face pairs 20-fold, True always, False never; refine_transform: optimise the
+    similarity jointly with the path (default: as prealign); init_code (P,) starts from the
+    straight path 0 -> init_code; dtype: precision of the objective (the optimiser is float64).
+    Raises MeshError/InputError on bad input, SolveCancelled when cancelled (no partial result).
+    """
+    start_time = time.perf_counter()
+    monitor = Monitor("register", callback, cancel)
+    if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+        raise InputError(f"dtype must be a torch floating point dtype, got {dtype!r}")
+    validate_mesh(scan_verts, scan_faces, "scan")
+    sv, sf = np.asarray(scan_verts, np.float64), np.asarray(scan_faces, np.int64)
+    face_w = _check_face_weights(scan_face_weights, sf.shape[0])
+    marks = _check_landmarks(landmarks, basis.template.shape[0])
+    if not (math.isfinite(landmark_weight) and landmark_weight >= 0):
+        raise InputError(f"landmark_weight must be finite and >= 0, got {landmark_weight}")
+    levels = _check_schedule(basis.schedule if schedule is None else schedule)
+    if binning not in ("auto", True, False):
+        raise InputError(f"binning must be 'auto', True or False, got {binning!r}")
+    metric = H2Weights.parse(basis.weights if metric is None else metric)
+    refine_transform = prealign if refine_transform is None else bool(refine_transform)
+    path = np.zeros((2, basis.n_fields))
+    if init_code is not None:
+        init = np.asarray(init_code, dtype=np.float64)
+        if init.shape != (basis.n_fields,) or not np.isfinite(init).all():
+            raise InputError(f"init_code must be {basis.n_fields} finite coefficients, got shape {init.shape}")
+        path[1] = init
+
+    monitor.report(0.0, "registration: pre-aligning" if prealign else "registration: starting")
+    monitor.check()
+    if prealign:
+        candidates = prealign_candidates(basis.template, basis.faces, sv, sf, face_w, monitor=monitor,
+                                         progress=(0.0, PREALIGN_FRACTION))
+        candidates = [c for c in candidates if c[0] <= PREALIGN_RATIO * candidates[0][0] + 1e-12]
+    else:
+        candidates = [(0.0, Similarity())]
+    problem = _Problem(basis, sv, sf, face_w, marks, landmark_weight, metric, kernel, backend, binning,
+                       refine_transform, dtype, device, monitor)
+
+    # progress: the first level is tried from every candidate alignment
+    budget = np.array([lv.steps * lv.max_iter for lv in levels], dtype=np.float64)
+    budget[0] *= len(candidates)
+    lo = PREALIGN_FRACTION if prealign else 0.0
+    bounds = lo + (1 - lo) * np.concatenate([[0.0], np.cumsum(budget) / budget.sum()])
+    name = lambda k: f"registration level {k + 1}/{len(levels)}"  # noqa: E731
+    tries = []
+    for j, (_, transform) in enumerate(candidates):
+        span = (bounds[1] - bounds[0]) / len(candidates)
+        tries.append(problem.solve_level(levels[0], path, transform, (bounds[0] + j * span, bounds[0] + (j + 1) * span),
+                                         name(0) + (f" (alignment {j + 1}/{len(candidates)})" if j else "")))
+    best = min(range(len(tries)), key=lambda j: tries[j][2]["objective"])
+    (path, transform, first), initial = tries[best], candidates[best][1]
+    report = [first]
+    monitor.report(bounds[1], f"{name(0)} done", first["objective"])
+    for k in range(1, len(levels)):
+        path, transform, lv_report = problem.solve_level(levels[k], path, transform, (bounds[k], bounds[k + 1]),
+                                                         name(k))
+        report.append(lv_report)
+        monitor.report(bounds[k + 1], f"{name(k)} done", lv_report["objective"])
+
+    code = path[-1]
+    decoded = basis.template + np.tensordot(code, basis.fields, axes=1)
+    vertices = transform.invert(decoded)
+    used = sv if face_w is None else sv[np.unique(sf[face_w > 0])]
+    return RegistrationResult(code=code, vertices=vertices, path=path, transform=transform, levels=report,
+                              varifold=report[-1]["varifold"], chamfer=chamfer(vertices, used),
+                              seconds=time.perf_counter() - start_time, prealignment=initial)
+
+
+class _Problem:
+    """The constant parts of a registration (template tensors, scan, landmarks) and one level's solve."""
+
+    def __init__(self, basis, sv, sf, face_w, marks, landmark_weight, metric, kernel, backend, binning,
+                 refine_transform, dtype, device, monitor):
+        self.binning = binning
+        self.template, self.faces, self.fields = basis.tensors(dtype=dtype, device=device)
+        area, self.center, _ = surface_moments(basis.template, basis.faces)
+        self.center_t = torch.as_tensor(self.center, dtype=dtype, device=device)
+        # similarity variables scaled so that a unit step moves the surface about as much as a
+        # unit step of a code coefficient (rms field length): a well-conditioned joint problem
+        move = math.sqrt((basis.fields**2).sum(-1).mean())
+        radius = math.sqrt(((basis.template - self.center) ** 2).sum(-1).mean())
+        self.units = np.array([move / radius] * 3 + [move] * 3 + [move / radius])
+        self.units_t = torch.as_tensor(self.units, dtype=dtype, device=device)
+        self.scan, self.scan_faces = sv, torch.as_tensor(sf, dtype=torch.long, device=device)
+        self.scan_weights = None if face_w is None else torch.as_tensor(face_w, dtype=dtype, device=device)
+        self.marks = marks
+        if marks is not None:
+            self.lm_idx = torch.as_tensor(marks[0], device=device)
+            self.lm_w = torch.as_tensor(marks[2] / marks[2].sum() * landmark_weight * area, dtype=dtype,
+                                        device=device)
+        self.metric, self.kernel, self.backend = metric, kernel, backend
+        self.n_extra = 7 if refine_transform else 0
+        self.dtype, self.device, self.monitor = dtype, device, monitor
+        self.scale, self.n_fields = basis.scale, basis.n_fields
+
+    def solve_level(self, level, path, transform, progress, message):
+        """Minimise one level from path (T0+1, P) and the alignment -> (path (T+1, P), alignment, report)."""
+        t0 = time.perf_counter()
+        self.monitor.check()
+        dtype, device, p_dim, steps = self.dtype, self.device, self.n_fields, level.steps
+        sigma = level.sigma * self.scale
+        target = torch.as_tensor(transform.apply(self.scan), dtype=dtype, device=device)
+        loss = None
+        if self.binning:
+            code = torch.as_tensor(path[-1], dtype=dtype, device=device)
+            loss = BinnedVarifoldLoss(decode(self.template, self.fields, code), self.faces, target,
+                                      self.scan_faces, sigma, self.kernel, self.scan_weights)
+            n_s, n_t = self.faces.shape[0], self.scan_faces.shape[0]
+            pairs = loss.n_groups * (loss.n_groups + loss.n_target)
+            if self.binning == "auto" and pairs > BIN_GAIN * n_s * (n_s + n_t):
+                loss = None
+        binned = loss is not None
+        if not binned:
+            loss = VarifoldLoss(target, self.scan_faces, sigma, kernel=self.kernel, backend=self.backend,
+                                target_weights=self.scan_weights)
+        if self.marks is not None:
+            lm_pts = torch.as_tensor(transform.apply(self.marks[1]), dtype=dtype, device=device)
+        terms = {}
+
+        def objective(x):
+            x = x.to(dtype=dtype, device=device)
+            alpha = _path_from_variables(x[:steps * p_dim].reshape(steps, p_dim), ramp)
+            meshes = decode(self.template, self.fields, alpha)
+            energy = h2_metric.path_energy(meshes, self.faces, self.metric)
+            final = meshes[-1]
+            if self.n_extra:
+                p = x[steps * p_dim:] * self.units_t
+                final = self.center_t + torch.exp(p[6]) * (final - self.center_t) @ _rotation(p[:3]).T + p[3:6]
+            gamma = loss(final, self.faces)
+            fit = gamma
+            if self.marks is not None:
+                fit = fit + (self.lm_w * ((final[self.lm_idx] - lm_pts) ** 2).sum(1)).sum()
+            terms.update(energy=energy, gamma=gamma)
+            return level.weight * fit + energy
+
+        ramp = torch.linspace(0, 1, steps + 1, dtype=dtype, device=device)[:, None]
+        x0 = np.concatenate([_variables_from_path(resample_in_time(path, steps)).ravel(), np.zeros(self.n_extra)])
+        x, value, nit = minimize_lbfgs(objective, x0, self.monitor, max_iter=level.max_iter,
+                                       progress=progress, message=message, ftol=LEVEL_FTOL)
+        with torch.no_grad():
+            objective(torch.from_numpy(x))
+        path = _path_from_variables(torch.from_numpy(x[:steps * p_dim].reshape(steps, p_dim)),
+                                    ramp.double().cpu()).numpy()
+        if self.n_extra:
+            delta = _delta_similarity(x[steps * p_dim:], self.center, self.units)
+            transform = delta.inverse().compose(transform)
+        return path, transform, {"sigma": float(sigma), "weight": float(level.weight), "steps": int(steps),
+                                 "iterations": int(nit), "energy": float(terms["energy"]),
+                                 "varifold": float(terms["gamma"]), "objective": float(value),
+                                 "binned": binned, "seconds": time.perf_counter() - t0}

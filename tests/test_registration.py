@@ -1,0 +1,213 @@
+"""Registration of unregistered scans: latent code retrieval, pre-alignment, landmarks, clutter."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from core import registration, synthetic
+from core.errors import InputError, MeshError, SolveCancelled
+from core.latent import Level
+from core.progress import CancelToken
+
+SCALE, SHIFT = 3.7, np.array([1.0, -2.0, 0.5])
+
+
+@pytest.fixture(scope="module")
+def space():
+    """A smooth 6-field latent space on icosphere(2), a code alpha* and F(alpha*) on another mesh."""
+    basis, surface = synthetic.smooth_sphere_basis(subdivisions=2, n_fields=6, seed=0)
+    alpha = 0.8 * np.random.default_rng(1).normal(size=6)
+    u, faces = synthetic.resampled_sphere(2, seed=3)
+    truth = surface(synthetic.icosphere(2)[0], alpha)  # F(alpha*) vertex by vertex
+    return {"basis": basis, "alpha": alpha, "truth": truth, "scan": surface(u, alpha), "faces": faces,
+            "rotation": synthetic.random_rotation(5)}
+
+
+def to_scan_frame(space, points):
+    return SCALE * points @ space["rotation"].T + SHIFT
+
+
+@pytest.fixture(scope="module")
+def moved(space):
+    """Registration of the remeshed scan after an arbitrary rotation, x 3.7 and a translation."""
+    events = []
+    res = registration.register(space["basis"], to_scan_frame(space, space["scan"]), space["faces"],
+                                backend="dense", callback=events.append)
+    return res, events
+
+
+@pytest.fixture(scope="module")
+def aligned(space):
+    """Registration of the remeshed scan given in the template frame (no pre-alignment)."""
+    return registration.register(space["basis"], space["scan"], space["faces"], prealign=False, backend="dense")
+
+
+def test_register_recovers_code_of_remeshed_rotated_rescaled_scan(space, moved):
+    res, _ = moved
+    alpha = space["alpha"]
+    assert np.abs(res.code - alpha).max() < 1e-2 * np.linalg.norm(alpha)
+    truth = to_scan_frame(space, space["truth"])
+    size = np.ptp(truth, axis=0).max()
+    assert np.linalg.norm(res.vertices - truth, axis=1).mean() < 5e-3 * size
+    assert res.transform.scale == pytest.approx(1 / SCALE, rel=1e-2)
+    assert np.allclose(res.vertices, res.transform.invert(space["basis"].template
+                                                          + np.tensordot(res.code, space["basis"].fields, 1)))
+    assert res.path.shape == (space["basis"].schedule[-1].steps + 1, 6) and not res.path[0].any()
+
+
+def test_register_in_template_frame_recovers_code(space, aligned):
+    assert np.abs(aligned.code - space["alpha"]).max() < 1e-2 * np.linalg.norm(space["alpha"])
+    assert np.linalg.norm(aligned.vertices - space["truth"], axis=1).mean() < 5e-3 * 2.0
+
+
+def test_prealignment_recovers_known_rotation_and_scale_of_template(space):
+    basis = space["basis"]
+    verts, faces = synthetic.remesh_same_surface(basis.template, basis.faces, seed=4)
+    rot = synthetic.random_rotation(11)
+    scan = 0.37 * verts @ rot.T + np.array([-3.0, 0.2, 7.0])
+    t = registration.align_to_template(basis.template, basis.faces, scan, faces)
+    angle = np.degrees(np.arccos(np.clip((np.trace(t.rotation @ rot) - 1) / 2, -1, 1)))
+    assert angle < 1.0
+    assert t.scale == pytest.approx(1 / 0.37, rel=1e-2)
+    assert np.abs(t.apply(scan) - verts).max() < 0.02 * np.ptp(verts, axis=0).max()
+
+
+def test_landmarks_pull_the_solution_towards_them(space, aligned):
+    basis = space["basis"]
+    other = space["alpha"] + np.array([0.6, -0.6, 0.0, 0.5, 0.0, -0.5])
+    target = basis.template + np.tensordot(other, basis.fields, 1)
+    idx = [0, 40, 80, 120, 160]
+    marks = [(i, target[i]) for i in idx]
+    res = registration.register(basis, space["scan"], space["faces"], prealign=False, backend="dense",
+                                landmarks=marks, landmark_weight=20.0)
+    before = np.linalg.norm(aligned.vertices[idx] - target[idx], axis=1).mean()
+    after = np.linalg.norm(res.vertices[idx] - target[idx], axis=1).mean()
+    assert after < 0.5 * before
+    assert np.linalg.norm(res.code - other) < np.linalg.norm(aligned.code - other)
+
+
+def test_bad_landmarks_and_inputs_raise_input_errors(space):
+    basis, scan, faces = space["basis"], space["scan"], space["faces"]
+    n = basis.template.shape[0]
+    for marks in ([(n, [0.0, 0.0, 0.0])], [(-1, [0.0, 0.0, 0.0])], [(1.5, [0.0, 0.0, 0.0])],
+                  [(0, [0.0, np.nan, 0.0])], [(0, [0.0, 0.0])], [(0,)]):
+        with pytest.raises(InputError, match="landmark"):
+            registration.register(basis, scan, faces, landmarks=marks)
+    with pytest.raises(InputError, match="face weights"):
+        registration.register(basis, scan, faces, scan_face_weights=np.ones(len(faces) + 1))
+    with pytest.raises(InputError, match="face weights"):
+        registration.register(basis, scan, faces, scan_face_weights=-np.ones(len(faces)))
+    with pytest.raises(InputError, match="zero"):
+        registration.register(basis, scan, faces, scan_face_weights=np.zeros(len(faces)))
+    with pytest.raises(MeshError, match="empty"):
+        registration.register(basis, np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
+    bad = scan.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(MeshError, match="NaN"):
+        registration.register(basis, bad, faces)
+    with pytest.raises(InputError, match="schedule"):
+        registration.register(basis, scan, faces, schedule=())
+    with pytest.raises(InputError, match="init_code"):
+        registration.register(basis, scan, faces, init_code=np.zeros(5))
+
+
+def test_zero_weight_clutter_is_ignored(space, moved):
+    """A floor plane under the scan, weighted 0, changes neither the alignment nor the code."""
+    scan = to_scan_frame(space, space["scan"])
+    g = np.linspace(-2.0, 2.0, 6)
+    xx, yy = np.meshgrid(g, g, indexing="ij")
+    plane = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, -1.4)], 1)
+    a = (np.arange(5)[:, None] * 6 + np.arange(5)[None, :]).ravel()
+    plane_faces = np.concatenate([np.stack([a, a + 6, a + 7], 1), np.stack([a, a + 7, a + 1], 1)])
+    verts = np.concatenate([scan, to_scan_frame(space, plane)])
+    faces = np.concatenate([space["faces"], plane_faces + len(scan)])
+    weights = np.r_[np.ones(len(space["faces"])), np.zeros(len(plane_faces))]
+    res = registration.register(space["basis"], verts, faces, scan_face_weights=weights, backend="dense")
+    assert np.abs(res.code - moved[0].code).max() < 1e-3 * np.linalg.norm(space["alpha"])
+    assert res.chamfer == pytest.approx(moved[0].chamfer, rel=1e-3)
+
+
+def test_cancel_from_callback_raises_solve_cancelled(space):
+    token = CancelToken()
+    seen = []
+
+    def callback(event):
+        seen.append(event)
+        token.cancel()
+
+    with pytest.raises(SolveCancelled):
+        registration.register(space["basis"], space["scan"], space["faces"], backend="dense",
+                              callback=callback, cancel=token)
+    assert len(seen) == 1 and seen[0].task == "register"
+
+
+def test_cancel_during_optimisation_raises_solve_cancelled(space):
+    token = CancelToken()
+    seen = []
+
+    def callback(event):
+        seen.append(event)
+        if len(seen) == 5:
+            token.cancel()
+
+    with pytest.raises(SolveCancelled):
+        registration.register(space["basis"], space["scan"], space["faces"], prealign=False, backend="dense",
+                              callback=callback, cancel=token)
+    assert len(seen) == 5
+
+
+def test_progress_is_monotone_and_reaches_one(moved):
+    fractions = [e.fraction for e in moved[1]]
+    assert fractions[0] == 0.0 and fractions[-1] == 1.0
+    assert all(b >= a for a, b in zip(fractions, fractions[1:]))
+
+
+def test_to_json_has_finite_summary(moved):
+    res = moved[0]
+    out = json.loads(json.dumps(res.to_json()))
+    assert {"code", "varifold", "chamfer", "seconds", "levels"} <= set(out)
+    assert len(out["code"]) == 6 and np.isfinite(out["code"]).all()
+    assert all(np.isfinite(out[k]) for k in ("varifold", "chamfer", "seconds"))
+    assert len(out["levels"]) == len(res.levels) == 2
+    for lv in out["levels"]:
+        assert {"sigma", "weight", "steps", "iterations", "energy", "varifold", "seconds"} <= set(lv)
+        assert all(np.isfinite(v) for v in lv.values())
+
+
+def test_similarity_apply_invert_compose_roundtrip():
+    a = registration.Similarity(synthetic.random_rotation(1), 2.5, [1.0, 2.0, 3.0])
+    b = registration.Similarity(synthetic.random_rotation(2), 0.3, [0.0, -1.0, 0.5])
+    x = np.random.default_rng(0).normal(size=(10, 3))
+    assert np.allclose(a.invert(a.apply(x)), x)
+    assert np.allclose(a.compose(b).apply(x), a.apply(b.apply(x)))
+    assert np.allclose(a.inverse().apply(x), a.invert(x))
+    xt = torch.as_tensor(x)
+    assert torch.allclose(a.apply(xt), torch.as_tensor(a.apply(x)))
+    c = registration.Similarity.from_dict(json.loads(json.dumps(a.to_dict())))
+    assert np.allclose(c.apply(x), a.apply(x))
+    with pytest.raises(InputError):
+        registration.Similarity(np.diag([1.0, 1.0, -1.0]), 1.0, np.zeros(3))
+
+
+def test_float32_objective_matches_float64(space, aligned):
+    schedule = (Level(0.25, 1e3, 1, 60),)
+    r64 = registration.register(space["basis"], space["scan"], space["faces"], prealign=False, backend="dense",
+                                schedule=schedule)
+    r32 = registration.register(space["basis"], space["scan"], space["faces"], prealign=False, backend="dense",
+                                schedule=schedule, dtype=torch.float32)
+    assert np.abs(r32.code - r64.code).max() < 1e-3 * np.linalg.norm(space["alpha"])
+
+
+def test_binned_varifold_matches_exact_varifold_at_coarse_sigma(space):
+    from core.varifold import VarifoldLoss
+
+    basis = space["basis"]
+    src, src_faces = (torch.as_tensor(x) for x in synthetic.remesh_same_surface(basis.template, basis.faces, seed=1))
+    tgt, tgt_faces = (torch.as_tensor(x) for x in synthetic.remesh_same_surface(space["truth"], basis.faces, seed=2))
+    for kernel in ("binet", "linear"):
+        exact = VarifoldLoss(tgt, tgt_faces, 1.0, kernel=kernel, backend="dense")(src, src_faces)
+        binned = registration.BinnedVarifoldLoss(src, src_faces, tgt, tgt_faces, 1.0, kernel=kernel)
+        assert binned.n_groups < src_faces.shape[0] / 4
+        assert float(binned(src, src_faces)) == pytest.approx(float(exact), rel=0.05)
