@@ -130,24 +130,13 @@ def cmd_build_basis(args):
                         name=args.name or args.output.stem, units=args.units, provenance=provenance,
                         elastic=tuple(args.elastic or ()))
     if not args.no_distribution:
+        from .statistics import fit_training_distribution
+
         basis.extras.update(fit_training_distribution(basis, [f for s in sequences.values() for f in s]))
     save_basis(args.output, basis)
     rows = {g: f"{b - a} fields, explained variance {basis.provenance['groups'][g]['explained_variance']:.4f}"
             for g, (a, b) in basis.groups.items()}
     _print(rows, False, f"wrote {args.output} ({basis.n_fields} fields)")
-
-
-def fit_training_distribution(basis, sequences, components=None, seed=0):
-    """Gaussian mixtures on the log maps of a basis' own training frames (random generation)."""
-    from .latent import project_to_basis
-    from .statistics import fit_distribution, log_map
-
-    frames = np.concatenate([np.asarray(s) for s in sequences])
-    codes = np.unique(np.stack([project_to_basis(basis, v)[0] for v in frames]).round(12), axis=0)
-    codes = codes[np.abs(codes).sum(1) > 0]
-    t, f, h = basis.tensors()
-    velocities = log_map(t, f, h, codes, basis.weights, steps=4)
-    return fit_distribution(velocities, basis.groups, components or {"pose": 10, "shape": 6}, seed=seed)
 
 
 def _codes(basis, paths, callback=None):

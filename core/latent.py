@@ -125,6 +125,7 @@ def validate_basis(b):
     if not b.scale > 0:
         raise InputError(f"basis '{b.name}': reference scale must be positive, got {b.scale}")
     b.template = t.astype(np.float64)
+    b.fields = h.astype(np.float64)  # bases may be stored in float16/float32; compute in float64
     b.faces = f.astype(np.int64)
     b.groups = {k: (int(v[0]), int(v[1])) for k, v in (b.groups or {"all": (0, h.shape[0])}).items()}
     b.weights = H2Weights.parse(b.weights)
@@ -170,14 +171,19 @@ def resolve_basis_path(name_or_path):
                      "give a path to an .npz basis file instead")
 
 
-def save_basis(path, basis):
-    """Write ``path`` (.npz arrays) and ``path.json`` (its card) atomically."""
+def save_basis(path, basis, fields_dtype=None):
+    """Write ``path`` (.npz arrays) and ``path.json`` (its card) atomically.
+
+    fields_dtype: store the fields in reduced precision (e.g. ``np.float16``)
+    to make bundled files smaller; they are read back as float64.
+    """
     path = Path(path)
     if path.suffix != ".npz":
         raise InputError(f"a basis file must end in .npz, got {path.name}")
     path.parent.mkdir(parents=True, exist_ok=True)
     card = basis.card()
-    arrays = {"template": basis.template, "faces": basis.faces, "fields": basis.fields,
+    fields = basis.fields if fields_dtype is None else basis.fields.astype(fields_dtype)
+    arrays = {"template": basis.template, "faces": basis.faces, "fields": fields,
               "card": np.frombuffer(json.dumps(card).encode(), dtype=np.uint8)}
     arrays.update({f"extra_{k}": np.asarray(v) for k, v in basis.extras.items()})
     tmp = path.with_name(path.name + ".tmp.npz")

@@ -33,7 +33,7 @@ back with the inverse similarity, so they overlay the scan in the scan's units.
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import permutations, product
 
 import numpy as np
@@ -57,6 +57,7 @@ PREALIGN_KEEP = 6           # distinct ones refined at the finer sigma and tried
 PREALIGN_DISTINCT = 20.0    # degrees between two distinct candidates
 PREALIGN_RATIO = 4.0        # candidates whose varifold is within this factor of the best's are tried
 PREALIGN_MAX_ITER = 40
+SCREEN_DIVISOR = 4          # candidate alignments are screened with 1/4 of the first level's iterations
 PREALIGN_FRACTION = 0.1     # share of the progress bar given to the pre-alignment
 #: L-BFGS stops a level when an iteration lowers the objective by less than this relative amount
 #: (the objective is dominated by weight x varifold; later digits only polish the path's interior)
@@ -544,17 +545,23 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
 
     # progress: the first level is tried from every candidate alignment
     budget = np.array([lv.steps * lv.max_iter for lv in levels], dtype=np.float64)
-    budget[0] *= len(candidates)
+    budget[0] *= 1 + (len(candidates) / SCREEN_DIVISOR if len(candidates) > 1 else 0)
     lo = PREALIGN_FRACTION if prealign else 0.0
     bounds = lo + (1 - lo) * np.concatenate([[0.0], np.cumsum(budget) / budget.sum()])
     name = lambda k: f"registration level {k + 1}/{len(levels)}"  # noqa: E731
+    # screen every candidate alignment with a short first level; only the best one gets the full level
+    screen = levels[0] if len(candidates) == 1 else replace(levels[0], max_iter=max(10, levels[0].max_iter // SCREEN_DIVISOR))
+    share = len(candidates) / SCREEN_DIVISOR
+    mid = bounds[1] if screen is levels[0] else bounds[0] + (bounds[1] - bounds[0]) * share / (1 + share)
     tries = []
     for j, (_, transform) in enumerate(candidates):
-        span = (bounds[1] - bounds[0]) / len(candidates)
-        tries.append(problem.solve_level(levels[0], path, transform, (bounds[0] + j * span, bounds[0] + (j + 1) * span),
+        span = (mid - bounds[0]) / len(candidates)
+        tries.append(problem.solve_level(screen, path, transform, (bounds[0] + j * span, bounds[0] + (j + 1) * span),
                                          name(0) + (f" (alignment {j + 1}/{len(candidates)})" if j else "")))
     best = min(range(len(tries)), key=lambda j: tries[j][2]["objective"])
     (path, transform, first), initial = tries[best], candidates[best][1]
+    if screen is not levels[0]:
+        path, transform, first = problem.solve_level(levels[0], path, transform, (mid, bounds[1]), name(0))
     report = [first]
     monitor.report(bounds[1], f"{name(0)} done", first["objective"])
     for k in range(1, len(levels)):

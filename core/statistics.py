@@ -137,3 +137,18 @@ def elastic_tangents(sequences, faces, weights, steps=5, callback=None, cancel=N
     if not out:
         raise InputError("elastic tangents need sequences of at least two meshes")
     return np.concatenate(out)
+
+
+def fit_training_distribution(basis, sequences, components=None, seed=0):
+    """Gaussian mixtures on the log maps of a basis' own training frames (random generation).
+
+    sequences: list of (T_i, N, 3) registered frames; components {group: K} (paper: pose 10, shape 6).
+    """
+    from .latent import project_to_basis
+
+    frames = np.concatenate([np.asarray(s) for s in sequences])
+    codes = np.unique(np.stack([project_to_basis(basis, v)[0] for v in frames]).round(12), axis=0)
+    codes = codes[np.abs(codes).sum(1) > 0]
+    t, f, h = basis.tensors()
+    velocities = log_map(t, f, h, codes, basis.weights, steps=4)
+    return fit_distribution(velocities, basis.groups, components or {"pose": 10, "shape": 6}, seed=seed)

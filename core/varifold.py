@@ -51,6 +51,8 @@ cutoff is below a quarter of the bounding-box diagonal of both meshes, else "keo
 "dense" without pykeops).
 """
 
+import contextlib
+import io
 import math
 
 import torch
@@ -75,7 +77,12 @@ def keops_available():
     global _KEOPS
     if _KEOPS is None:
         try:
-            import pykeops.torch  # noqa: F401
+            # KeOps prints its banner and compile messages on stdout, which would corrupt
+            # the CLI's JSON output: keep its import quiet and turn its verbosity off.
+            with contextlib.redirect_stdout(io.StringIO()):
+                import pykeops
+                import pykeops.torch  # noqa: F401
+            pykeops.set_verbose(False)
             _KEOPS = True
         except Exception:  # ImportError, or a broken compiler setup at import time
             _KEOPS = False
@@ -267,24 +274,27 @@ class _Grid:
         return perm_i, ranges_i, slices, runs, owner, pairs
 
 
-def _truncated_tiles(xs, ns, ys, ms, bs, g, coef, grad, ranges_i, runs, owner, ti=32, tj=256):
-    """Torch fallback of the block-sparse sums: split (cluster x run) blocks into padded tiles."""
+def _truncated_tiles(xs, ns, ys, ms, bs, g, coef, grad, ranges_i, runs, owner, ti=16, tj=512):
+    """Torch fallback of the block-sparse sums: per cluster, its runs are concatenated into one
+    list of j indices, and (cluster rows x list) is cut into padded (ti x tj) tiles."""
     dev = xs.device
-    nI = (ranges_i[:, 1] - ranges_i[:, 0] + ti - 1) // ti              # i-tiles per cluster
+    C = ranges_i.shape[0]
     rl = runs[:, 1] - runs[:, 0]
-    nJ = (rl + tj - 1) // tj                                            # j-tiles per run
-    # one entry per (run, j-tile)
-    r = torch.repeat_interleave(torch.arange(runs.shape[0], device=dev), nJ)
-    jt = torch.arange(r.shape[0], device=dev) - torch.repeat_interleave(torch.cumsum(nJ, 0) - nJ, nJ)
-    j0 = runs[r, 0] + jt * tj
-    j1 = torch.minimum(j0 + tj, runs[r, 1])
-    c = owner[r]
-    # times the i-tiles of the owning cluster
-    rep = nI[c]
-    j0, j1, c = (torch.repeat_interleave(v, rep) for v in (j0, j1, c))
-    it = torch.arange(c.shape[0], device=dev) - torch.repeat_interleave(torch.cumsum(rep, 0) - rep, rep)
+    total = int(rl.sum())
+    first = torch.repeat_interleave(torch.cumsum(rl, 0) - rl, rl)
+    jlist = torch.repeat_interleave(runs[:, 0], rl) + torch.arange(total, device=dev) - first
+    L = torch.zeros(C, dtype=torch.long, device=dev).index_add_(0, owner, rl)   # list length per cluster
+    off = torch.cumsum(L, 0) - L
+    nI = (ranges_i[:, 1] - ranges_i[:, 0] + ti - 1) // ti
+    nJ = (L + tj - 1) // tj
+    nt = nI * nJ
+    c = torch.repeat_interleave(torch.arange(C, device=dev), nt)
+    k = torch.arange(c.shape[0], device=dev) - torch.repeat_interleave(torch.cumsum(nt, 0) - nt, nt)
+    it, jt = k // nJ[c], k % nJ[c]
     i0 = ranges_i[c, 0] + it * ti
     i1 = torch.minimum(i0 + ti, ranges_i[c, 1])
+    p0 = off[c] + jt * tj
+    p1 = torch.minimum(p0 + tj, off[c] + L[c])
     out = xs.new_zeros(xs.shape[0], 7 if grad else 1)
     chunk = max(1, DENSE_CHUNK_BYTES // (12 * ti * tj * xs.element_size()))
     ai, aj = torch.arange(ti, device=dev), torch.arange(tj, device=dev)
@@ -292,9 +302,9 @@ def _truncated_tiles(xs, ns, ys, ms, bs, g, coef, grad, ranges_i, runs, owner, t
         ii = i0[s:s + chunk, None] + ai
         mi = ii < i1[s:s + chunk, None]
         ii = torch.where(mi, ii, i0[s:s + chunk, None])
-        jj = j0[s:s + chunk, None] + aj
-        mj = jj < j1[s:s + chunk, None]
-        jj = torch.where(mj, jj, j0[s:s + chunk, None])
+        pp = p0[s:s + chunk, None] + aj
+        mj = pp < p1[s:s + chunk, None]
+        jj = jlist[torch.where(mj, pp, p0[s:s + chunk, None])]
         F = _tile_sums(xs[ii], ns[ii], ys[jj], ms[jj], bs[jj] * mj, g, coef, grad)
         out.index_add_(0, ii[mi], F[mi])
     return out
@@ -405,25 +415,31 @@ class VarifoldLoss:
                 raise InputError("target_weights must be finite and nonnegative")
             target_weights = target_weights.to(target_verts)
         self.kernel, self.backend, self.cutoff = kernel, backend, cutoff
-        self.target = varifold_measure(target_verts, target_faces.long(), target_weights)
-        self.target_requires_grad = any(t.requires_grad for t in self.target)
+        self._target_mesh = (target_verts, target_faces.long(), target_weights)
+        self._measure = varifold_measure(*self._target_mesh)
+        self.target_requires_grad = any(t.requires_grad for t in self._measure)
         self._grid = None
         self._self = {}
         self.stats = {}
 
+    @property
+    def target(self):
+        """Target centres (F',3), normals (F',3), weighted areas (F',); rebuilt if it requires grad."""
+        return varifold_measure(*self._target_mesh) if self.target_requires_grad else self._measure
+
     def _target_grid(self, engine):
         if self._grid is None or self._grid[0] != engine.cutoff:
-            self._grid = (engine.cutoff, _Grid(self.target[0], engine.cutoff))
+            self._grid = (engine.cutoff, _Grid(self._measure[0].detach(), engine.cutoff))
         return self._grid[1]
 
-    def _target_self(self, engine, backend):
+    def _target_self(self, engine, backend, target):
         """<q', q'>, computed once per backend (every call if the target requires grad)."""
         grid = self._target_grid(engine) if backend == "truncated" else None
         if self.target_requires_grad:
-            return self._term(engine, backend, self.target, self.target, True, grid)
+            return self._term(engine, backend, target, target, True, grid)
         if backend not in self._self:
             with torch.no_grad():
-                self._self[backend] = self._term(engine, backend, self.target, self.target, True, grid)
+                self._self[backend] = self._term(engine, backend, target, target, True, grid)
         return self._self[backend]
 
     def _term(self, engine, backend, q, qt, symmetric, grid_j=None):
@@ -436,11 +452,12 @@ class VarifoldLoss:
     def __call__(self, verts, faces):
         """Squared distance d^2(q, q_target) of the mesh (verts (N,3), faces (F,3)) -> scalar."""
         _check_mesh(verts, faces, "source")
-        tc = self.target[0]
+        tc = self._measure[0]
         if verts.dtype != tc.dtype or verts.device != tc.device:
             raise InputError(f"source is {verts.dtype} on {verts.device} but the target is "
                              f"{tc.dtype} on {tc.device}; convert one of them")
         q = varifold_measure(verts, faces.long())
+        target = self.target
         backend = self.backend
         if backend == "auto":
             pts = torch.cat([q[0], tc]).detach()
@@ -450,9 +467,9 @@ class VarifoldLoss:
         engine = _Engine(backend, self.sigma, self.kernel, self.cutoff)
         grid_t = self._target_grid(engine) if backend == "truncated" else None
         self_s = self._term(engine, backend, q, q, True)
-        cross = self._term(engine, backend, q, self.target, False, grid_t)
+        cross = self._term(engine, backend, q, target, False, grid_t)
         pairs = engine.pairs
-        self_t = self._target_self(engine, backend)
+        self_t = self._target_self(engine, backend, target)
         n, nt = q[0].shape[0], tc.shape[0]
         self.stats = {"backend": backend, "pairs": pairs, "all_pairs": n * n + n * nt}
         return self_s - 2 * cross + self_t

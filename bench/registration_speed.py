@@ -1,0 +1,69 @@
+"""Speed at the paper's scale: registration and interpolation (issue: latent space).
+
+6,890-vertex DFAUST template with P = 170 synthetic smooth fields, a ~55k-face noisy,
+remeshed scan of F(alpha*), the paper's three-level body schedule. Targets: registration
+<= 20 s on the 2-core CPU (<= 2 s on one H100), interpolation with known codes (T = 10)
+<= 2 s on CPU. Prints per-level timings and a profile of where the time goes.
+Run: python -m bench.registration_speed [--device cuda] [--dtype float32]
+"""
+
+import argparse
+import cProfile
+import io
+import pstats
+import time
+
+import numpy as np
+import torch
+
+from bench.body_data import body_basis, body_scan
+from bench.common import markdown_table, report
+from core import evaluation
+from core.geodesic import geodesic
+from core.registration import register
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--dtype", default="float64", choices=("float32", "float64"))
+    parser.add_argument("--profile", action="store_true")
+    args = parser.parse_args()
+    dtype = getattr(torch, args.dtype)
+    basis = body_basis("registration_speed")
+    rng = np.random.default_rng(3)
+    truth = rng.normal(size=basis.n_fields) * 0.5
+    sv, sf = body_scan(basis, truth)
+    print(f"template {basis.template.shape[0]} vertices, P = {basis.n_fields}, scan {len(sf)} faces, "
+          f"device {args.device}, {args.dtype}, torch threads {torch.get_num_threads()}")
+    prof = cProfile.Profile() if args.profile else None
+    t0 = time.perf_counter()
+    if prof:
+        prof.enable()
+    res = register(basis, sv, sf, device=args.device, dtype=dtype)
+    if prof:
+        prof.disable()
+    reg_secs = time.perf_counter() - t0
+    err = evaluation.vertex_error(res.vertices, basis.template + np.tensordot(truth, basis.fields, 1))
+    rows = [[f"level {i + 1}", lv["sigma"], lv["weight"], lv["steps"], lv["iterations"], lv["binned"],
+             lv["seconds"]] for i, lv in enumerate(res.levels)]
+    table1 = markdown_table(["stage", "sigma (m)", "weight", "steps", "iterations", "binned", "seconds"], rows)
+    t, f, h = basis.tensors(dtype=dtype, device=args.device)
+    a0, a1 = rng.normal(size=(2, basis.n_fields)) * 0.5
+    t1 = time.perf_counter()
+    g = geodesic(t, f, h, a0, a1, basis.weights, steps=10)
+    interp_secs = time.perf_counter() - t1
+    table2 = markdown_table(["task", "seconds", "target (CPU)", "notes"], [
+        ["registration (3 levels)", reg_secs, "<= 20 s",
+         f"vertex error mean {err['mean'] * 1000:.2f} mm, p95 {err['p95'] * 1000:.2f} mm"],
+        ["interpolation, known codes, T = 10", interp_secs, "<= 2 s", f"{g.iterations} L-BFGS iterations"]])
+    text = "## Registration levels\n\n" + table1 + "\n\n## Totals\n\n" + table2
+    if prof:
+        s = io.StringIO()
+        pstats.Stats(prof, stream=s).sort_stats("cumulative").print_stats(25)
+        text += "\n\n## Profile (registration, cumulative)\n\n```\n" + s.getvalue()[-6000:] + "\n```"
+    report(f"registration_speed_{args.device}_{args.dtype}", text)
+
+
+if __name__ == "__main__":
+    main()

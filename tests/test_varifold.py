@@ -1,0 +1,205 @@
+"""Tests of core.varifold: the three backends agree, metric properties, invariances, options."""
+
+import numpy as np
+import pytest
+import torch
+
+from core import varifold as V
+from core.errors import InputError
+from core.synthetic import blob_mesh, random_rotation
+from core.varifold import VarifoldLoss, choose_backend, varifold_distance
+
+SIGMA = 0.1          # blobs have diameter ~2-3: truncation removes most pairs at this scale
+DT = torch.float64
+
+
+def mesh(subdivisions=3, seed=0, requires_grad=False):
+    v, f = blob_mesh(subdivisions, seed=seed)
+    return torch.tensor(v, dtype=DT).requires_grad_(requires_grad), torch.tensor(f)
+
+
+@pytest.fixture(scope="module")
+def keops_ok():
+    """Skip when pykeops is missing or cannot compile here."""
+    if not V.keops_available():
+        pytest.skip("pykeops is not importable")
+    try:
+        v, f = mesh(1)
+        varifold_distance(v, f, v + 0.1, f, SIGMA, backend="keops")
+    except Exception as err:  # compiler missing, etc.
+        pytest.skip(f"KeOps does not compile here: {err}")
+    return True
+
+
+BACKENDS = ["dense", "keops", "truncated", "truncated-torch"]
+
+
+@pytest.fixture
+def use_backend(request, monkeypatch):
+    """Returns the backend name to pass; 'truncated-torch' = truncated without KeOps ranges."""
+    def setup(name):
+        if name in ("keops", "truncated"):
+            request.getfixturevalue("keops_ok")
+        if name == "truncated-torch":
+            monkeypatch.setattr(V, "_KEOPS", False)
+            return "truncated"
+        return name
+    return setup
+
+
+def value_and_grads(backend, kernel="binet", sigma=SIGMA):
+    v, f = mesh(3, 0, True)
+    w, g = mesh(2, 1, True)
+    loss = VarifoldLoss(w, g, sigma, kernel=kernel, backend=backend)
+    d = loss(v, f)
+    gv, gw = torch.autograd.grad(d, (v, w))
+    return d.detach(), gv, gw, loss.stats
+
+
+@pytest.mark.parametrize("kernel", ["binet", "linear", "constant"])
+@pytest.mark.parametrize("backend", BACKENDS[1:])
+def test_backends_agree_with_dense_values_and_gradients(backend, kernel, use_backend):
+    ref = value_and_grads("dense", kernel)
+    out = value_and_grads(use_backend(backend), kernel)
+    assert torch.isclose(out[0], ref[0], rtol=1e-5, atol=0)
+    for a, b in zip(out[1:3], ref[1:3]):
+        assert float((a - b).norm() / b.norm()) < 1e-5
+    if backend.startswith("truncated"):
+        assert out[3]["pairs"] < 0.5 * out[3]["all_pairs"], "truncation removed no pairs"
+
+
+def test_truncation_error_within_documented_bound():
+    v, f = mesh(3, 0)
+    w, g = mesh(2, 1)
+    exact = varifold_distance(v, f, w, g, SIGMA, backend="dense")
+    cut = 2.0 * SIGMA                       # loose cutoff: tol = exp(-4)
+    approx = varifold_distance(v, f, w, g, SIGMA, backend="truncated", cutoff=cut)
+    A = V.varifold_measure(v, f)[2].sum() + V.varifold_measure(w, g)[2].sum()
+    assert 0 < abs(float(approx - exact)) <= np.exp(-(cut / SIGMA) ** 2) * float(A) ** 2
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_varifold_loss_equals_varifold_distance(backend, use_backend):
+    name = use_backend(backend)
+    v, f = mesh(3, 0)
+    w, g = mesh(2, 1)
+    loss = VarifoldLoss(w, g, SIGMA, backend=name)
+    d1, d2 = loss(v, f), loss(v, f)           # second call uses the cached target self term
+    ref = varifold_distance(v, f, w, g, SIGMA, backend=name)
+    assert torch.allclose(d1, ref, rtol=1e-12) and torch.allclose(d2, ref, rtol=1e-12)
+
+
+def test_distance_to_itself_is_zero_and_symmetric_positive():
+    v, f = mesh(3, 0)
+    w, g = mesh(2, 1)
+    norm2 = varifold_distance(v, f, v + 1e3, f, SIGMA) / 2         # far apart: d^2 = |q|^2 + |q'|^2
+    assert abs(float(varifold_distance(v, f, v, f, SIGMA))) < 1e-12 * float(norm2)
+    d12 = varifold_distance(v, f, w, g, SIGMA)
+    d21 = varifold_distance(w, g, v, f, SIGMA)
+    assert torch.isclose(d12, d21, rtol=1e-12)
+    assert float(d12) > 1e-3 * float(norm2)
+
+
+def test_gradient_matches_finite_differences():
+    v, f = blob_mesh(1, seed=0)
+    w, g = blob_mesh(1, seed=1)
+    v = torch.tensor(v, dtype=DT, requires_grad=True)
+    w = torch.tensor(w, dtype=DT, requires_grad=True)
+    f, g = torch.tensor(f), torch.tensor(g)
+    fn = lambda a, b: varifold_distance(a, f, b, g, 0.5, backend="dense")  # noqa: E731
+    assert torch.autograd.gradcheck(fn, (v, w), eps=1e-6, atol=1e-7, rtol=1e-5, fast_mode=True)
+
+
+def test_rigid_motion_of_both_meshes_leaves_distance_unchanged():
+    v, f = mesh(3, 0)
+    w, g = mesh(2, 1)
+    R = torch.tensor(random_rotation(3), dtype=DT)
+    t = torch.tensor([0.3, -2.0, 5.0], dtype=DT)
+    for backend in ("dense", "truncated-torch"):
+        name = "truncated" if backend == "truncated-torch" else backend
+        d = varifold_distance(v, f, w, g, SIGMA, backend=name)
+        dm = varifold_distance(v @ R.T + t, f, w @ R.T + t, g, SIGMA, backend=name)
+        assert torch.isclose(d, dm, rtol=1e-6), backend
+
+
+def test_same_surface_at_two_resolutions_is_close():
+    coarse, fine, other = mesh(4, 0), mesh(5, 0), mesh(5, 4)     # same seed = same smooth surface
+    sigma = 0.3
+    qf = V.varifold_measure(*fine)
+    norm = float(V.varifold_inner(*qf, *qf, sigma, backend="truncated")) ** 0.5
+    same = float(varifold_distance(*coarse, *fine, sigma, backend="truncated")) ** 0.5 / norm
+    diff = float(varifold_distance(*coarse, *other, sigma, backend="truncated")) ** 0.5 / norm
+    assert same < 1e-2
+    assert diff > 30 * same
+
+
+def test_linear_kernel_sees_orientation_binet_does_not():
+    v, f = mesh(3, 0)
+    w, g = mesh(2, 1)
+    flipped = g[:, [0, 2, 1]]
+    for kernel, sign in (("linear", -1.0), ("binet", 1.0)):
+        qv, qw, qf = V.varifold_measure(v, f), V.varifold_measure(w, g), V.varifold_measure(w, flipped)
+        a = V.varifold_inner(*qv, *qw, SIGMA, kernel=kernel)
+        b = V.varifold_inner(*qv, *qf, SIGMA, kernel=kernel)
+        assert torch.isclose(b, sign * a, rtol=1e-12), kernel
+    assert not torch.isclose(varifold_distance(v, f, w, g, SIGMA, "linear"),
+                             varifold_distance(v, f, w, flipped, SIGMA, "linear"))
+
+
+@pytest.mark.parametrize("backend", ["dense", "truncated-torch"])
+def test_target_weights_ones_and_zero_weighted_clutter(backend, use_backend):
+    name = use_backend(backend)
+    v, f = mesh(3, 0)
+    w, g = mesh(3, 0)
+    w = w * 1.05
+    ones = torch.ones(g.shape[0], dtype=DT)
+    plain = varifold_distance(v, f, w, g, SIGMA, backend=name)
+    assert torch.allclose(varifold_distance(v, f, w, g, SIGMA, backend=name, target_weights=ones),
+                          plain, rtol=1e-12)
+    clutter_v, clutter_f = mesh(2, 3)
+    scan_v = torch.cat([w, clutter_v * 0.5 + torch.tensor([3.0, 0.0, 0.0], dtype=DT)])
+    scan_f = torch.cat([g, clutter_f + w.shape[0]])
+    weights = torch.cat([ones, torch.zeros(clutter_f.shape[0], dtype=DT)])
+    cluttered = varifold_distance(v, f, scan_v, scan_f, SIGMA, backend=name)
+    ignored = varifold_distance(v, f, scan_v, scan_f, SIGMA, backend=name, target_weights=weights)
+    assert torch.allclose(ignored, plain, rtol=1e-10)
+    assert float(cluttered) > 1.5 * float(plain)
+
+
+def test_float32_and_auto_choice():
+    v, f = mesh(3, 0)
+    w, g = mesh(2, 1)
+    d64 = varifold_distance(v, f, w, g, SIGMA, backend="dense")
+    d32 = varifold_distance(v.float(), f, w.float(), g, SIGMA, backend="dense")
+    assert d32.dtype == torch.float32 and abs(float(d32) - float(d64)) < 1e-4 * float(d64)
+    assert choose_backend(1000, 1000, 0.1, 2.0, "cpu") == "dense"
+    assert choose_backend(14000, 55000, 0.025, 2.0, "cpu") == "truncated"
+    assert choose_backend(14000, 55000, 1.0, 2.0, "cpu") in ("keops", "dense")
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"kernel": "gauss"}, "kernel"), ({"backend": "gpu"}, "backend"), ({"sigma": 0.0}, "sigma"),
+    ({"sigma": -1.0}, "sigma"), ({"cutoff": -1.0}, "cutoff")])
+def test_bad_options_raise_input_error(kwargs, match):
+    v, f = mesh(1, 0)
+    args = {"sigma": SIGMA, **kwargs}
+    with pytest.raises(InputError, match=match):
+        varifold_distance(v, f, v, f, **args)
+
+
+def test_bad_meshes_raise_input_error(monkeypatch):
+    v, f = mesh(1, 0)
+    bad = v.clone()
+    bad[0, 0] = float("nan")
+    with pytest.raises(InputError, match="NaN"):
+        varifold_distance(bad, f, v, f, SIGMA)
+    with pytest.raises(InputError, match="shape"):
+        varifold_distance(v[:, :2], f, v, f, SIGMA)
+    with pytest.raises(InputError, match="outside"):
+        varifold_distance(v, f + 1000, v, f, SIGMA)
+    with pytest.raises(InputError, match="target_weights"):
+        varifold_distance(v, f, v, f, SIGMA, target_weights=torch.ones(3, dtype=DT))
+    monkeypatch.setattr(V, "_KEOPS", False)
+    with pytest.raises(InputError, match="pykeops"):
+        varifold_distance(v, f, v, f, SIGMA, backend="keops")
+    assert choose_backend(14000, 55000, 1.0, 2.0, "cpu") == "dense"
