@@ -271,6 +271,15 @@ def cmd_sample(args):
     _print({"samples": args.n, "seed": args.seed, "output": str(args.output)}, args.json, "random shapes")
 
 
+def cmd_simulate_scan(args):
+    """A realistic unregistered scan of a mesh (remesh, noise, holes, crop, rigid motion, clutter)."""
+    from .scan_simulator import simulate_scan_cli
+
+    info = simulate_scan_cli(args)
+    _print({"output": info["output"], "vertices": info["n_vertices"], "faces": info["n_faces"],
+            "scale": float(info["scale"])}, args.json, "simulated scan")
+
+
 def cmd_demo(args):
     """Generate two surfaces, save them, and compare them (metrics and path energy)."""
     from . import synthetic
@@ -379,6 +388,13 @@ def build_parser():
     p.add_argument("-o", "--output", type=Path, required=True)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_sample)
+
+    from .scan_simulator import add_simulate_scan_arguments
+
+    p = sub.add_parser("simulate-scan", help="turn a mesh into a realistic unregistered scan")
+    add_simulate_scan_arguments(p)
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=cmd_simulate_scan)
 
     p = sub.add_parser("demo", help="generate two surfaces and compare them")
     p.add_argument("-o", "--output", default="bareesa-demo", help="folder for the generated meshes")

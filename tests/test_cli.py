@@ -193,3 +193,16 @@ def test_extrapolate_and_transfer_on_registered_meshes(capsys, built):
     for k in range(3):
         pose = project_to_basis(basis, load_mesh(seqs["bend"][k])[0])[0]
         assert np.allclose(moved[k, basis.group_slice("pose")], pose[basis.group_slice("pose")])
+
+
+def test_simulate_scan_writes_a_differently_meshed_scan(capsys, meshes, tmp_path):
+    from core.mesh import load_mesh
+
+    paths, (v, w, f, s, sf) = meshes
+    rc, out, err = run(capsys, "simulate-scan", paths["a"], "-o", tmp_path / "scan.ply", "--seed", "2", "--json")
+    assert rc == 0, err
+    sv, sfaces = load_mesh(tmp_path / "scan.ply")
+    assert json.loads(out)["faces"] == len(sfaces)
+    assert len(sv) != len(v) or not np.allclose(sv, v)
+    rc2, _, _ = run(capsys, "simulate-scan", paths["a"], "-o", tmp_path / "scan2.ply", "--seed", "2")
+    assert rc2 == 0 and np.array_equal(load_mesh(tmp_path / "scan2.ply")[0], sv)  # seeded
