@@ -271,6 +271,53 @@ def cmd_sample(args):
     _print({"samples": args.n, "seed": args.seed, "output": str(args.output)}, args.json, "random shapes")
 
 
+def load_landmarks(path):
+    """Landmarks file -> [(template vertex, (x, y, z), weight)]: JSON list or CSV lines vertex,x,y,z[,weight]."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"landmarks file {path} does not exist")
+    text = path.read_text()
+    try:
+        rows = json.loads(text) if path.suffix == ".json" else [
+            [float(x) for x in line.replace(";", ",").split(",")]
+            for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
+    except ValueError as err:
+        raise InputError(f"cannot read landmarks from {path}: {err}") from None
+    out = []
+    for k, row in enumerate(rows):
+        flat = [row[0], *row[1]] + list(row[2:]) if len(row) >= 2 and isinstance(row[1], (list, tuple)) else list(row)
+        if len(flat) not in (4, 5) or float(flat[0]) != int(flat[0]):
+            raise InputError(f"{path}: landmark {k + 1} must be 'vertex, x, y, z[, weight]', got {row}")
+        out.append((int(flat[0]), tuple(float(x) for x in flat[1:4]), float(flat[4]) if len(flat) == 5 else 1.0))
+    return out
+
+
+def cmd_register(args):
+    """Latent code of a raw scan; writes the registered mesh (template topology, scan's frame)."""
+    from .latent import load_basis
+    from .mesh import load_mesh, save_mesh, validate_mesh
+    from .progress import tqdm_callback
+    from .registration import register
+
+    basis = load_basis(args.basis)
+    verts, faces = load_mesh(args.scan)
+    validate_mesh(verts, faces, name=str(args.scan))
+    landmarks = load_landmarks(args.landmarks) if args.landmarks else None
+    callback, close = tqdm_callback("register", disable=args.json or None)
+    try:
+        res = register(basis, verts, faces, landmarks=landmarks, callback=callback)
+    finally:
+        close()
+    save_mesh(args.output, res.vertices, basis.faces)
+    np.save(Path(args.output).with_suffix(".code.npy"), res.code)
+    out = res.to_json()
+    if args.json:
+        _print(out, True)
+    else:
+        _print({"output": str(args.output), "varifold": out["varifold"], "chamfer": out["chamfer"],
+                "seconds": out["seconds"]}, False, f"registered {args.scan} onto basis '{basis.name}'")
+
+
 def cmd_simulate_scan(args):
     """A realistic unregistered scan of a mesh (remesh, noise, holes, crop, rigid motion, clutter)."""
     from .scan_simulator import simulate_scan_cli
@@ -333,6 +380,14 @@ def build_parser():
                    help="a0,a1,b1,c1,d1,a2 or a preset: body (1,1000,100,1,1,1), face (1,10,10,10,1,1)")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_path_energy)
+
+    p = sub.add_parser("register", help="register a raw scan onto a basis' template")
+    p.add_argument("scan", type=Path)
+    p.add_argument("--basis", default="humanoid", help="bundled basis name or .npz path")
+    p.add_argument("-o", "--output", type=Path, required=True, help="registered mesh (template topology)")
+    p.add_argument("--landmarks", type=Path, help="JSON or CSV: template vertex, x, y, z[, weight] per line")
+    p.add_argument("--json", action="store_true", help="print JSON (code, varifold, chamfer, seconds, levels)")
+    p.set_defaults(func=cmd_register)
 
     p = sub.add_parser("build-basis", help="PCA basis from registered 4D sequences")
     p.add_argument("template", type=Path)

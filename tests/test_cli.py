@@ -206,3 +206,30 @@ def test_simulate_scan_writes_a_differently_meshed_scan(capsys, meshes, tmp_path
     assert len(sv) != len(v) or not np.allclose(sv, v)
     rc2, _, _ = run(capsys, "simulate-scan", paths["a"], "-o", tmp_path / "scan2.ply", "--seed", "2")
     assert rc2 == 0 and np.array_equal(load_mesh(tmp_path / "scan2.ply")[0], sv)  # seeded
+
+
+def test_register_command_writes_registered_mesh_and_json(capsys, tmp_path):
+    from core.latent import save_basis
+    from core.mesh import load_mesh
+
+    basis, surface = synthetic.smooth_sphere_basis(subdivisions=2, n_fields=6, seed=0)
+    save_basis(tmp_path / "s.npz", basis)
+    alpha = 0.5 * np.random.default_rng(4).normal(size=6)
+    u, faces = synthetic.resampled_sphere(2, seed=5)
+    rot = synthetic.random_rotation(2)
+    save_mesh(tmp_path / "scan.ply", 1.5 * surface(u, alpha) @ rot.T, faces)
+    (tmp_path / "lm.csv").write_text("# vertex, x, y, z\n")
+    rc, out, err = run(capsys, "register", tmp_path / "scan.ply", "--basis", tmp_path / "s.npz",
+                       "-o", tmp_path / "reg.ply", "--landmarks", tmp_path / "lm.csv", "--json")
+    assert rc == 0, err
+    res = json.loads(out)
+    assert set(res) >= {"code", "varifold", "chamfer", "seconds", "levels"}
+    assert np.abs(np.array(res["code"]) - alpha).max() < 0.05
+    reg, reg_faces = load_mesh(tmp_path / "reg.ply")
+    truth = 1.5 * surface(synthetic.icosphere(2)[0], alpha) @ rot.T
+    assert np.array_equal(reg_faces, basis.faces)
+    assert np.abs(reg - truth).max() < 0.05 * np.abs(truth).max()
+    (tmp_path / "bad.csv").write_text("1, 2, 3\n")
+    rc, _, err = run(capsys, "register", tmp_path / "scan.ply", "--basis", tmp_path / "s.npz",
+                     "-o", tmp_path / "r2.ply", "--landmarks", tmp_path / "bad.csv")
+    assert rc == 2 and "landmark 1" in err and not (tmp_path / "r2.ply").exists()
