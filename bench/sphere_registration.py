@@ -54,6 +54,7 @@ def main():
                          err["p95"] / scale / length * 100,
                          evaluation.chamfer(res.vertices, sv) / scale / length * 100,
                          evaluation.hausdorff(res.vertices, sv) / scale / length * 100, res.varifold, secs])
+            print("  ", *(f"{x:.4g}" if isinstance(x, float) else x for x in rows[-1]), flush=True)
     mean = ["mean", "", *np.mean([r[2:] for r in rows], axis=0)]
     part1 = markdown_table(["held-out frame", "scan faces", "vertex err mean %L", "vertex err p95 %L",
                             "Chamfer %L", "Hausdorff %L", "varifold (template frame)", "seconds"],
