@@ -1,47 +1,26 @@
-"""BaRe-ESA for Blender: the Blender side (operators, N-panel, conversions).
+"""BaRe-ESA for Blender: the Blender side (operators, N-panel, conversions, background jobs).
 
 Thin by design: all mathematics lives in the solver ``core``, which never
-imports bpy. For now the add-on registers an N-panel that reports which
-solver dependencies import; operators arrive with the Blender issue.
+imports bpy (vendored as ``<package>/core`` in the installable extension).
+Modules: ``convert`` (bpy <-> arrays), ``operators`` (one per user action),
+``jobs`` (solves off the main thread), ``panels`` (the sidebar), ``properties``
+(scene settings), ``preferences`` (dependencies, device), ``solver`` (core access).
 """
 
-import importlib.util
+from . import operators, panels, preferences, properties
+from .panels import BAREESA_PT_main
+from .preferences import SOLVER_MODULES, dependency_status
 
-import bpy
+__all__ = ["BAREESA_PT_main", "SOLVER_MODULES", "dependency_status", "register", "unregister"]
 
-SOLVER_MODULES = ("torch", "scipy", "numpy", "trimesh", "pykeops", "sklearn")
-
-
-def dependency_status():
-    """{module name: importable?} for the solver's dependencies (no import is executed)."""
-    return {name: importlib.util.find_spec(name) is not None for name in SOLVER_MODULES}
-
-
-class BAREESA_PT_main(bpy.types.Panel):
-    """The BaRe-ESA sidebar tab in the 3D Viewport."""
-
-    bl_label = "BaRe-ESA"
-    bl_idname = "BAREESA_PT_main"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "BaRe-ESA"
-
-    def draw(self, context):
-        layout = self.layout
-        col = layout.column(align=True)
-        col.label(text="Solver dependencies:")
-        for name, ok in dependency_status().items():
-            col.label(text=name, icon="CHECKMARK" if ok else "ERROR")
-
-
-CLASSES = (BAREESA_PT_main,)
+MODULES = (preferences, properties, operators, panels)
 
 
 def register():
-    for cls in CLASSES:
-        bpy.utils.register_class(cls)
+    for module in MODULES:
+        module.register()
 
 
 def unregister():
-    for cls in reversed(CLASSES):
-        bpy.utils.unregister_class(cls)
+    for module in reversed(MODULES):
+        module.unregister()

@@ -1,0 +1,282 @@
+"""bpy data <-> numpy arrays: meshes, shape keys (latent codes), keyframes, transforms.
+
+Nothing here knows about the mathematics; every function is a plain conversion.
+Codes live on an object as the values of one shape key per basis field (named
+``<group>_<index:03d>``, relative to ``Basis``), so that Blender's own shape-key
+mix *is* the decoder F(alpha) = template + sum_i alpha_i h_i.
+
+Blender caps shape-key sliders at +-10. When codes are larger, an object's field
+keys hold template + k h_i with a key scale k (a power of two, stored as the
+custom property ``bareesa_key_scale``) and the values are alpha_i / k; the mix
+is the same decoder. k is 1 whenever the codes fit, so values then *are* the code.
+"""
+
+import math
+
+import bpy
+import numpy as np
+from mathutils import Matrix
+
+#: Custom properties stored on objects made by the add-on (they survive save/reload).
+PROP_BASIS = "bareesa_basis"            # the basis reference: bundled name or absolute .npz path
+PROP_BASIS_NAME = "bareesa_basis_name"  # the basis' own name (for display)
+PROP_SCAN = "bareesa_scan"              # the scan an object was registered from
+PROP_VARIFOLD = "bareesa_varifold"
+PROP_CHAMFER = "bareesa_chamfer"
+PROP_KEY_SCALE = "bareesa_key_scale"    # field keys hold template + k h_i; values are code / k
+#: Blender limits shape-key sliders to [-10, 10]; larger codes use a key scale (see above).
+SLIDER_LIMIT = 10.0
+#: A code beyond this is a diverged solve, not a shape.
+CODE_LIMIT = 1e6
+
+
+class ConversionError(ValueError):
+    """Blender data cannot be converted (message tells the user what to fix)."""
+
+
+def require_mesh(obj, role="object"):
+    """Raise ConversionError unless ``obj`` is a mesh object."""
+    if obj is None:
+        raise ConversionError(f"no {role} given")
+    if obj.type != "MESH":
+        raise ConversionError(f"{role} '{obj.name}' is a {obj.type.lower()}, not a mesh")
+    return obj
+
+
+def _read_mesh(mesh):
+    mesh.calc_loop_triangles()
+    verts = np.empty(len(mesh.vertices) * 3, dtype=np.float64)
+    mesh.vertices.foreach_get("co", verts)
+    tris = np.empty(len(mesh.loop_triangles) * 3, dtype=np.int32)
+    mesh.loop_triangles.foreach_get("vertices", tris)
+    return verts.reshape(-1, 3), tris.reshape(-1, 3).astype(np.int64)
+
+
+def evaluated_mesh(obj, depsgraph):
+    """Mesh as Blender shows it (modifiers, shape keys, caches), local frame: -> verts (N, 3), tris (F, 3).
+
+    Quads and n-gons are triangulated (Blender's loop triangles).
+    """
+    require_mesh(obj)
+    evaluated = obj.evaluated_get(depsgraph)
+    mesh = evaluated.to_mesh()
+    try:
+        return _read_mesh(mesh)
+    finally:
+        evaluated.to_mesh_clear()
+
+
+def rest_mesh(obj):
+    """The mesh data itself (the ``Basis`` shape), local frame: -> verts (N, 3), tris (F, 3)."""
+    require_mesh(obj)
+    return _read_mesh(obj.data)
+
+
+def new_mesh_object(name, verts, faces, collection, smooth=True):
+    """A new object with a triangle mesh (N, 3), (F, 3), linked to ``collection``."""
+    mesh = bpy.data.meshes.new(name)
+    mesh.from_pydata(np.asarray(verts, dtype=np.float64).tolist(), [], np.asarray(faces).tolist())
+    mesh.update()
+    if smooth:
+        mesh.shade_smooth()
+    obj = bpy.data.objects.new(name, mesh)
+    collection.objects.link(obj)
+    return obj
+
+
+def add_field_keys(obj, template, fields, names, scale=1.0):
+    """Shape keys 'Basis' (= template) and one per field (template + scale h_i), sliders at +-SLIDER_LIMIT."""
+    template = np.asarray(template, dtype=np.float64)
+    basis_key = obj.shape_key_add(name="Basis", from_mix=False)
+    basis_key.data.foreach_set("co", template.ravel())
+    for name, field in zip(names, np.asarray(fields, dtype=np.float64)):
+        key = obj.shape_key_add(name=name, from_mix=False)
+        key.data.foreach_set("co", (template + scale * field).ravel())
+        key.slider_min, key.slider_max = -SLIDER_LIMIT, SLIDER_LIMIT
+        key.relative_key = basis_key
+    obj.data.shape_keys.use_relative = True
+    obj[PROP_KEY_SCALE] = float(scale)
+    obj.data.update()
+
+
+def key_scale(obj):
+    """The object's key scale k (values are code / k)."""
+    return float(obj.get(PROP_KEY_SCALE, 1.0))
+
+
+def needed_scale(codes):
+    """Smallest power-of-two key scale that keeps codes within 90% of the slider range (1 when they fit)."""
+    m = float(np.abs(np.asarray(codes, dtype=np.float64)).max(initial=0.0))
+    limit = 0.9 * SLIDER_LIMIT
+    return 1.0 if m <= limit else float(2.0 ** math.ceil(math.log2(m / limit)))
+
+
+def fit_range(obj, names, template, fields, codes):
+    """Enlarge the object's key scale if ``codes`` would not fit its sliders (keys, values and keyframes rescaled)."""
+    old, new = key_scale(obj), needed_scale(codes)
+    if new <= old:
+        return
+    blocks = obj.data.shape_keys.key_blocks
+    ratio = old / new
+    values = {n: blocks[n].value for n in names}
+    for name, field in zip(names, np.asarray(fields, dtype=np.float64)):
+        blocks[name].data.foreach_set("co", (np.asarray(template) + new * field).ravel())
+        blocks[name].value = values[name] * ratio
+    curves = fcurves(obj.data.shape_keys)
+    for name in names:
+        fc = curves.get(_data_path(name))
+        if fc is None:
+            continue
+        for point in fc.keyframe_points:
+            point.co[1] *= ratio
+            point.handle_left[1] *= ratio
+            point.handle_right[1] *= ratio
+        fc.update()
+    obj[PROP_KEY_SCALE] = new
+    obj.data.update()
+
+
+def has_field_keys(obj, names):
+    """True when ``obj`` carries a shape key for every field name."""
+    keys = obj.data.shape_keys if obj is not None and obj.type == "MESH" else None
+    return keys is not None and all(n in keys.key_blocks for n in names)
+
+
+def check_code(code, what="the result"):
+    """Raise ConversionError unless the code is finite and of a sane size (else the solve diverged)."""
+    code = np.asarray(code, dtype=np.float64)
+    if not np.isfinite(code).all():
+        raise ConversionError(f"{what} contains NaN or infinite values (the solve diverged); nothing was written")
+    if np.abs(code).max(initial=0.0) > CODE_LIMIT:
+        raise ConversionError(f"{what} has a coefficient of {np.abs(code).max():.3g} (the solve diverged); "
+                              "nothing was written")
+    return code
+
+
+def _values(obj, code):
+    values = check_code(code) / key_scale(obj)
+    if np.abs(values).max(initial=0.0) > SLIDER_LIMIT * (1 + 1e-6):
+        raise ConversionError(f"a code of {np.abs(code).max():.3g} does not fit the shape keys of '{obj.name}' "
+                              f"(key scale {key_scale(obj):g}); nothing was written")
+    return values
+
+
+def set_code(obj, names, code):
+    """Shape-key values <- code (P,) (divided by the object's key scale)."""
+    blocks = obj.data.shape_keys.key_blocks
+    for name, value in zip(names, _values(obj, code)):
+        blocks[name].value = float(value)
+
+
+def get_code(obj, names):
+    """Shape-key values -> code (P,) (the current, possibly animated, values times the key scale)."""
+    blocks = obj.data.shape_keys.key_blocks
+    return key_scale(obj) * np.array([blocks[n].value for n in names], dtype=np.float64)
+
+
+def _data_path(name):
+    return f'key_blocks["{bpy.utils.escape_identifier(name)}"].value'
+
+
+def fcurves(id_data):
+    """{data_path: FCurve} of the action assigned to an ID (Blender 4.2 actions and 4.4+ slotted ones)."""
+    anim = id_data.animation_data
+    if anim is None or anim.action is None:
+        return {}
+    curves = None
+    slot = getattr(anim, "action_slot", None)
+    if slot is not None:
+        try:
+            from bpy_extras.anim_utils import action_get_channelbag_for_slot
+        except ImportError:
+            pass
+        else:
+            bag = action_get_channelbag_for_slot(anim.action, slot)
+            curves = bag.fcurves if bag is not None else []
+    if curves is None:
+        curves = anim.action.fcurves
+    return {fc.data_path: fc for fc in curves}
+
+
+def keyframe_codes(obj, names, frames, codes, replace=True):
+    """Keyframe the field shape keys: frames (T,), codes (T, P); linear interpolation between keys.
+
+    replace=True rebuilds each curve from these keys only; otherwise keys are added to existing curves.
+    """
+    frames = np.asarray(frames, dtype=np.float64)
+    codes = _values(obj, np.asarray(codes, dtype=np.float64))
+    key = obj.data.shape_keys
+    blocks = key.key_blocks
+    curves = fcurves(key)
+    for name in names:
+        if _data_path(name) not in curves:
+            blocks[name].keyframe_insert("value", frame=float(frames[0]))
+    curves = fcurves(key)
+    for j, name in enumerate(names):
+        fc = curves[_data_path(name)]
+        if replace:
+            fc.keyframe_points.clear()
+            fc.keyframe_points.add(len(frames))
+            fc.keyframe_points.foreach_set("co", np.stack([frames, codes[:, j]], 1).ravel())
+        else:
+            for f, v in zip(frames, codes[:, j]):
+                fc.keyframe_points.insert(float(f), float(v), options={"FAST"})
+        for point in fc.keyframe_points:
+            point.interpolation = "LINEAR"
+        fc.update()
+
+
+def keyed_frames(obj, names):
+    """Sorted frames at which any field shape key has a keyframe: -> (K,) float array."""
+    if obj.data.shape_keys is None:
+        return np.zeros(0)
+    curves = fcurves(obj.data.shape_keys)
+    frames = set()
+    for name in names:
+        fc = curves.get(_data_path(name))
+        if fc is not None:
+            frames.update(p.co[0] for p in fc.keyframe_points)
+    return np.array(sorted(frames))
+
+
+def code_at_frame(obj, names, frame):
+    """Code of an object at a frame, from its shape-key animation (static values where not animated)."""
+    curves = fcurves(obj.data.shape_keys)
+    blocks = obj.data.shape_keys.key_blocks
+    return key_scale(obj) * np.array([curves[_data_path(n)].evaluate(frame) if _data_path(n) in curves
+                                      else blocks[n].value for n in names], dtype=np.float64)
+
+
+def similarity_inverse_matrix(similarity):
+    """4x4 Matrix of the inverse of x -> s R x + t (template frame -> scan frame)."""
+    r, s, t = np.asarray(similarity.rotation), float(similarity.scale), np.asarray(similarity.translation)
+    m = np.eye(4)
+    m[:3, :3] = r.T / s
+    m[:3, 3] = -(r.T @ t) / s
+    return Matrix(m.tolist())
+
+
+def blend_matrices(m0, m1, t):
+    """Transform between two world matrices at t in [0, 1] (lerp location/scale, slerp rotation)."""
+    l0, r0, s0 = m0.decompose()
+    l1, r1, s1 = m1.decompose()
+    loc, rot, scale = l0.lerp(l1, t), r0.slerp(r1, t), s0.lerp(s1, t)
+    return Matrix.LocRotScale(loc, rot, scale)
+
+
+def keyframe_transforms(obj, frames, matrices):
+    """Keyframe location, quaternion rotation and scale of ``obj`` from world matrices (no parent)."""
+    obj.rotation_mode = "QUATERNION"
+    for frame, m in zip(frames, matrices):
+        loc, rot, scale = m.decompose()
+        obj.location, obj.rotation_quaternion, obj.scale = loc, rot, scale
+        for path in ("location", "rotation_quaternion", "scale"):
+            obj.keyframe_insert(path, frame=float(frame))
+    obj.matrix_world = matrices[0]
+
+
+def natural_key(name):
+    """Sort key that orders 'frame_2' before 'frame_10'."""
+    import re
+
+    return [int(p) if p.isdigit() else p.lower() for p in re.split(r"(\d+)", name)]

@@ -1,0 +1,207 @@
+"""Long solves off the main thread, with progress in the status bar and Esc to cancel.
+
+An operator splits its work in three: ``prepare`` (main thread: read bpy data into
+arrays, validate), ``solve(callback, cancel)`` (any thread: only arrays and the
+core, never bpy) and ``apply`` (main thread: write the results). ``SolveOperator``
+runs ``solve`` in a thread polled by a modal timer when invoked from the
+interface, and synchronously from scripts and in background mode. Nothing is
+written before ``solve`` succeeds, so a cancelled or failed solve leaves the
+scene exactly as it was; the operator is undoable as one step.
+"""
+
+import sys
+import threading
+import time
+import traceback
+from dataclasses import dataclass
+from typing import Callable
+
+import bpy
+
+from . import solver
+from .convert import ConversionError
+
+#: Jobs running now (the panel draws their progress).
+RUNNING = []
+
+
+@dataclass
+class Task:
+    """What an operator prepared: a title, the solve (thread-safe, no bpy) and how to apply its result."""
+
+    title: str
+    solve: Callable  # solve(callback, cancel) -> result
+    apply: Callable  # apply(context, result) -> message for the info report
+
+
+def new_token():
+    """A fresh cancellation token (tests replace this to simulate Esc)."""
+    return solver.module("progress").CancelToken()
+
+
+class Job:
+    """One solve: ``start()`` runs it in a thread, ``run()`` in this one; ``cancel()`` from anywhere."""
+
+    def __init__(self, title, solve, echo=False):
+        self.title, self._solve, self.echo = title, solve, echo
+        self.token = new_token()
+        self.fraction, self.message = 0.0, title
+        self.result = self.error = None
+        self._thread = None
+        self._printed = -1.0
+
+    def _callback(self, event):
+        self.fraction, self.message = float(event.fraction), event.message or self.title
+        if self.echo and (self.fraction - self._printed >= 0.1 or self.fraction >= 1.0 > self._printed):
+            self._printed = self.fraction
+            print(f"BaRe-ESA: {self.title}: {self.fraction:4.0%} {event.message}", flush=True)
+
+    def run(self):
+        """Run the solve here; the outcome is in ``result`` or ``error``."""
+        try:
+            self.result = self._solve(self._callback, self.token)
+        except BaseException as err:  # noqa: BLE001 - handed to the main thread as is
+            self.error = err
+
+    def start(self):
+        self._thread = threading.Thread(target=self.run, name=f"bareesa: {self.title}", daemon=True)
+        self._thread.start()
+
+    @property
+    def done(self):
+        return self._thread is None or not self._thread.is_alive()
+
+    def cancel(self):
+        self.token.cancel()
+
+    def wait(self, timeout=None):
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+
+def scaled_callback(callback, lo, hi):
+    """A callback reporting sub-task progress into [lo, hi] of the parent's bar."""
+    if callback is None:
+        return None
+    progress = solver.module("progress")
+
+    def inner(event):
+        callback(progress.ProgressEvent(event.task, lo + (hi - lo) * event.fraction, event.message, event.energy))
+
+    return inner
+
+
+def is_user_error(err):
+    """True for errors whose message is meant for the user (bad input, missing dependency, solver refusal)."""
+    if isinstance(err, (ConversionError, solver.DependencyError)):
+        return True
+    try:
+        return isinstance(err, solver.module("errors").BareEsaError)
+    except solver.DependencyError:
+        return False
+
+
+def _status(context, text):
+    workspace = getattr(context, "workspace", None)
+    if workspace is not None:
+        workspace.status_text_set(text)
+
+
+class SolveOperator:
+    """Mixin for operators whose work is a solve: subclasses implement ``prepare(context) -> Task``."""
+
+    bl_options = {"REGISTER", "UNDO"}
+
+    def prepare(self, context):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _prepare(self, context):
+        try:
+            return self.prepare(context)
+        except Exception as err:
+            if not is_user_error(err):
+                raise
+            self.report({"ERROR"}, str(err))
+            return None
+
+    def execute(self, context):
+        task = self._prepare(context)
+        if task is None:
+            return {"CANCELLED"}
+        job = Job(task.title, task.solve, echo=bpy.app.background)
+        job.run()
+        return self._finish(context, task, job)
+
+    def invoke(self, context, event):
+        if bpy.app.background or context.window is None:
+            return self.execute(context)
+        task = self._prepare(context)
+        if task is None:
+            return {"CANCELLED"}
+        self._task, self._job = task, Job(task.title, task.solve)
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.2, window=context.window)
+        wm.modal_handler_add(self)
+        wm.progress_begin(0, 100)
+        RUNNING.append(self._job)
+        self._job.start()
+        _status(context, f"BaRe-ESA: {task.title}... (Esc to cancel)")
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == "ESC" and event.value == "PRESS":
+            job.cancel()
+            _status(context, f"BaRe-ESA: cancelling {job.title}...")
+            return {"RUNNING_MODAL"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}  # the interface stays usable while the solve runs
+        context.window_manager.progress_update(int(100 * job.fraction))
+        if not job.done:
+            _status(context, f"BaRe-ESA: {job.message} {job.fraction:.0%} (Esc to cancel)")
+            for area in context.screen.areas if context.screen else ():
+                if area.type == "VIEW_3D":
+                    area.tag_redraw()
+            return {"RUNNING_MODAL"}
+        wm = context.window_manager
+        wm.event_timer_remove(self._timer)
+        wm.progress_end()
+        _status(context, None)
+        if job in RUNNING:
+            RUNNING.remove(job)
+        return self._finish(context, self._task, job)
+
+    def _finish(self, context, task, job):
+        err = job.error
+        if err is not None:
+            if type(err).__name__ == "SolveCancelled":
+                self.report({"WARNING"}, f"{task.title}: cancelled; nothing was changed")
+            elif is_user_error(err):
+                self.report({"ERROR"}, f"{task.title}: {err}")
+            else:
+                traceback.print_exception(type(err), err, err.__traceback__, file=sys.stderr)
+                self.report({"ERROR"}, f"{task.title} failed: {type(err).__name__}: {err}")
+            return {"CANCELLED"}
+        try:
+            message = task.apply(context, job.result)
+        except Exception as err:
+            if not is_user_error(err):
+                raise
+            self.report({"ERROR"}, f"{task.title}: {err}")
+            return {"CANCELLED"}
+        self.report({"INFO"}, message)
+        return {"FINISHED"}
+
+
+def run_blocking(title, solve, timeout=None):
+    """Run a solve in a thread and wait (for scripts that want the threaded path): -> result."""
+    job = Job(title, solve)
+    job.start()
+    start = time.monotonic()
+    while not job.done:
+        job.wait(0.05)
+        if timeout is not None and time.monotonic() - start > timeout:
+            job.cancel()
+    if job.error is not None:
+        raise job.error
+    return job.result

@@ -1,0 +1,102 @@
+"""Scene settings of the BaRe-ESA panel (``scene.bareesa``); they are saved with the .blend."""
+
+import bpy
+from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
+                       StringProperty)
+
+from .solver import SCHEDULE_PRESETS
+
+METRIC_PRESETS = (
+    ("BASIS", "Basis", "The metric weights stored with the basis"),
+    ("BODY", "Body", "The paper's body weights (1, 1000, 100, 1, 1, 1)"),
+    ("FACE", "Face", "The paper's face weights (1, 10, 10, 10, 1, 1)"),
+    ("CUSTOM", "Custom", "Six weights a0, a1, b1, c1, d1, a2"),
+)
+
+
+def _is_mesh(_self, obj):
+    return obj.type == "MESH"
+
+
+class BareEsaSettings(bpy.types.PropertyGroup):
+    """Everything the panel's sections need; operators read it when their own arguments are empty."""
+
+    # Basis
+    basis: StringProperty(name="Basis", default="humanoid",
+                          description="A bundled basis name (humanoid, deformables), a basis saved in the user's "
+                                      "bases directory, or a path to an .npz basis file")
+    metric: EnumProperty(name="Metric", items=METRIC_PRESETS, default="BASIS",
+                         description="Weights of the invariant H2 metric")
+    metric_custom: StringProperty(name="Weights", default="1,1000,100,1,1,1",
+                                  description="a0,a1,b1,c1,d1,a2 for the custom metric")
+    # Register
+    schedule: EnumProperty(name="Schedule", items=SCHEDULE_PRESETS, default="PAPER",
+                           description="Multiscale registration schedule")
+    prealign: BoolProperty(name="Pre-align", default=True,
+                           description="Find the scan's rotation, position and scale first (off: the scan is "
+                                       "already in the template's frame)")
+    # Interpolate / extrapolate
+    object_a: PointerProperty(name="From", type=bpy.types.Object, poll=_is_mesh,
+                              description="Start of the path (empty: the selected object that is not active)")
+    object_b: PointerProperty(name="To", type=bpy.types.Object, poll=_is_mesh,
+                              description="End of the path (empty: the active object)")
+    steps: IntProperty(name="Steps", default=8, min=2, max=100,
+                       description="Time points of the geodesic solve (keyframes are resampled from it)")
+    geodesic_iterations: IntProperty(name="Iterations", default=200, min=1, max=5000,
+                                     description="Most L-BFGS iterations of a geodesic solve (fewer: faster, "
+                                                 "less exact in-betweens)")
+    frame_start: IntProperty(name="Start", default=1, description="First frame of the keyframed path")
+    frame_end: IntProperty(name="End", default=25, description="Last frame of the keyframed path")
+    make_collection: BoolProperty(name="Also as meshes", default=False,
+                                  description="Also bake every frame of the path as a mesh in a new collection")
+    extrapolate_steps: IntProperty(name="New steps", default=4, min=1, max=200,
+                                   description="Number of geodesic steps to continue the motion by")
+    extrapolate_spacing: IntProperty(name="Spacing", default=5, min=1,
+                                     description="Frames between extrapolated keyframes (when two objects are used)")
+    # Motion transfer
+    motion_source: PointerProperty(name="Motion", type=bpy.types.Object, poll=_is_mesh,
+                                   description="A mesh animated without armature (shape keys, mesh cache, ...)")
+    motion_collection: PointerProperty(name="Frames", type=bpy.types.Collection,
+                                       description="Or: an ordered collection of per-frame objects (sorted by name)")
+    motion_target: PointerProperty(name="Identity", type=bpy.types.Object, poll=_is_mesh,
+                                   description="The body that performs the motion (empty: the active object)")
+    identity_group: StringProperty(name="Identity group", default="shape",
+                                   description="Basis group holding identity (body shape) coefficients")
+    # Random bodies
+    count: IntProperty(name="Count", default=6, min=1, max=400)
+    seed: IntProperty(name="Seed", default=0, min=0)
+    fit_collection: PointerProperty(name="Fit to", type=bpy.types.Collection,
+                                    description="Fit the distribution to these registered objects "
+                                                "(empty: the basis' stored distribution)")
+    shoot_steps: IntProperty(name="Shooting steps", default=6, min=1, max=50)
+    # Build basis
+    build_source: PointerProperty(name="Animated mesh", type=bpy.types.Object, poll=_is_mesh,
+                                  description="Its frames in the frame range (any animation Blender evaluates); "
+                                              "empty: the active object")
+    build_collection: PointerProperty(name="Meshes", type=bpy.types.Collection,
+                                      description="Or: a collection of same-topology meshes (sorted by name)")
+    build_group: StringProperty(name="Group", default="pose")
+    build_components: IntProperty(name="Components", default=10, min=1, max=500)
+    build_name: StringProperty(name="Name", default="my_basis")
+    # Distance
+    distance_collection: PointerProperty(name="Collection", type=bpy.types.Collection,
+                                         description="Pairwise distances of its registered objects, written to CSV")
+    distance_csv: StringProperty(name="CSV", subtype="FILE_PATH", default="//bareesa_distances.csv")
+    distance: FloatProperty(name="Distance", default=-1.0, precision=4,
+                            description="Last geodesic distance computed (-1: none yet)")
+    distance_pair: StringProperty(name="Pair", default="")
+
+
+CLASSES = (BareEsaSettings,)
+
+
+def register():
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.bareesa = PointerProperty(type=BareEsaSettings)
+
+
+def unregister():
+    del bpy.types.Scene.bareesa
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)

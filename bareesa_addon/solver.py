@@ -1,0 +1,96 @@
+"""Access to the solver ``core`` from the add-on (no bpy here).
+
+Inside the installable extension the core is vendored as ``<package>/core``
+(relative imports, bundled bases in ``<package>/bases``); in a source checkout
+the top-level ``core`` package is used. The core is imported lazily so that the
+add-on registers (and can offer to install dependencies) even when torch is missing.
+"""
+
+import importlib
+from pathlib import Path
+
+SCHEDULE_PRESETS = (
+    ("PAPER", "Paper", "The basis' own multiscale schedule (the paper's, tuned to the basis)"),
+    ("FAST", "Fast", "A shortened schedule: at most 2 time steps and 40 iterations per level"),
+)
+FAST_STEPS, FAST_ITER = 2, 40
+
+
+class DependencyError(ImportError):
+    """The solver's Python dependencies are missing (message tells the user what to do)."""
+
+
+def module(name):
+    """The core submodule ``name`` (e.g. "latent"), vendored copy first."""
+    package = __package__ or "bareesa_addon"
+    try:
+        return importlib.import_module(f"{package}.core.{name}")
+    except ModuleNotFoundError as err:
+        if err.name not in (f"{package}.core", f"{package}.core.{name}"):
+            raise DependencyError(f"the solver needs the Python module '{err.name}': open Preferences > "
+                                  "Add-ons > BaRe-ESA and press 'Install dependencies'") from None
+    try:
+        return importlib.import_module(f"core.{name}")
+    except ModuleNotFoundError as err:
+        if err.name in ("core", f"core.{name}"):
+            raise DependencyError(f"the BaRe-ESA solver core ({name}) is not installed with the add-on") from None
+        raise DependencyError(f"the solver needs the Python module '{err.name}': open Preferences > "
+                              "Add-ons > BaRe-ESA and press 'Install dependencies'") from None
+
+
+_BASIS_CACHE = {}
+
+
+def resolve_basis(reference, user_dir=None):
+    """A bundled name, a name saved in ``user_dir`` or a path -> the string core.latent.load_basis takes."""
+    reference = (reference or "").strip()
+    if not reference:
+        raise module("errors").InputError("no basis chosen: set one in the Basis section (a bundled name "
+                                          "such as 'humanoid' or a path to an .npz file)")
+    p = Path(reference)
+    if p.suffix != ".npz" and p.parent == Path(".") and user_dir is not None:
+        candidate = Path(user_dir) / f"{reference}.npz"
+        if candidate.exists():
+            return str(candidate)
+    return reference
+
+
+def load_basis(reference, user_dir=None):
+    """Load (cached by file and modification time) a basis: -> (Basis, resolved path string)."""
+    latent = module("latent")
+    path = latent.resolve_basis_path(resolve_basis(reference, user_dir))
+    key = (str(path.resolve()), path.stat().st_mtime_ns)
+    if key not in _BASIS_CACHE:
+        _BASIS_CACHE.clear()  # one basis at a time: bodies are large
+        _BASIS_CACHE[key] = latent.load_basis(path)
+    return _BASIS_CACHE[key], str(path.resolve())
+
+
+def schedule(basis, preset):
+    """The registration schedule for a preset name (see SCHEDULE_PRESETS): -> tuple of Level."""
+    if preset == "PAPER":
+        return basis.schedule
+    if preset == "FAST":
+        level = module("latent").Level
+        return tuple(level(lv.sigma, lv.weight, min(lv.steps, FAST_STEPS), min(lv.max_iter, FAST_ITER))
+                     for lv in basis.schedule)
+    raise module("errors").InputError(f"unknown schedule preset {preset!r}")
+
+
+def metric(basis, preset, custom=""):
+    """H2 weights: "BASIS" (the basis' own), "BODY", "FACE" or "CUSTOM" (a0,a1,b1,c1,d1,a2 in ``custom``)."""
+    h2 = module("h2_metric")
+    if preset == "BASIS":
+        return basis.weights
+    if preset == "CUSTOM":
+        return h2.H2Weights.parse(custom)
+    return h2.H2Weights.parse(preset.lower())
+
+
+def field_names(basis):
+    """Shape-key name of every field, in field order: '<group>_<index:03d>'."""
+    names = [None] * basis.n_fields
+    for group, (start, stop) in basis.groups.items():
+        for i in range(start, stop):
+            names[i] = f"{group}_{i - start:03d}"
+    return names

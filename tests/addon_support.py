@@ -1,0 +1,105 @@
+"""Fixtures shared by the headless Blender tests (tests/test_addon_*.py).
+
+A tiny basis (42-vertex smooth sphere, groups ``pose`` and ``shape`` of two
+fields each, a fitted distribution, a fast two-level schedule) is built once
+and saved to a temporary .npz, so the tests never need the bundled bases.
+"""
+
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+from core import synthetic  # noqa: E402
+from core.latent import Basis, Level, save_basis  # noqa: E402
+from core.statistics import fit_distribution  # noqa: E402
+
+TINY_SCHEDULE = (Level(0.25, 1e3, 1, 15), Level(0.15, 1e5, 1, 15))
+
+
+def tiny_basis():
+    """The test basis and its generating surface map ``surface(u, alpha)``."""
+    b, surface = synthetic.smooth_sphere_basis(subdivisions=1, n_fields=4, seed=0, schedule=TINY_SCHEDULE)
+    rng = np.random.default_rng(0)
+    groups = {"pose": (0, 2), "shape": (2, 4)}
+    extras = fit_distribution(0.5 * rng.normal(size=(12, 4)), groups, {"pose": 1, "shape": 1}, seed=0)
+    basis = Basis(template=b.template, faces=b.faces, fields=b.fields, groups=groups, weights=b.weights,
+                  schedule=TINY_SCHEDULE, scale=b.scale, units="", name="tiny", extras=extras)
+    return basis, surface
+
+
+@pytest.fixture(scope="session")
+def tiny(tmp_path_factory):
+    """(Basis, path of its .npz, surface map)."""
+    basis, surface = tiny_basis()
+    path = tmp_path_factory.mktemp("bases") / "tiny.npz"
+    save_basis(path, basis)
+    return basis, path, surface
+
+
+@pytest.fixture
+def scene(tiny, tmp_path, monkeypatch):
+    """An empty scene with the add-on registered, the tiny basis chosen and fast settings."""
+    import bareesa_addon
+
+    monkeypatch.setenv("BAREESA_USER_BASES", str(tmp_path / "user_bases"))
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bareesa_addon.register()
+    s = bpy.context.scene.bareesa
+    s.basis = str(tiny[1])
+    s.schedule = "FAST"
+    s.steps = 4
+    s.frame_start, s.frame_end = 1, 6
+    s.shoot_steps = 2
+    yield bpy.context.scene
+    bareesa_addon.unregister()
+
+
+def add_mesh(name, verts, faces, location=(0.0, 0.0, 0.0), quads=None):
+    """A mesh object in the scene's collection, selected and active."""
+    mesh = bpy.data.meshes.new(name)
+    mesh.from_pydata(np.asarray(verts).tolist(), [], (np.asarray(faces).tolist() if quads is None else quads))
+    mesh.update()
+    obj = bpy.data.objects.new(name, mesh)
+    bpy.context.scene.collection.objects.link(obj)
+    obj.location = location
+    bpy.context.view_layer.update()
+    return obj
+
+
+def select(*objects, active=None):
+    for o in bpy.context.view_layer.objects:
+        o.select_set(False)
+    for o in objects:
+        o.select_set(True)
+    bpy.context.view_layer.objects.active = active or (objects[-1] if objects else None)
+
+
+def mesh_verts(obj):
+    v = np.empty(len(obj.data.vertices) * 3)
+    obj.data.vertices.foreach_get("co", v)
+    return v.reshape(-1, 3)
+
+
+def key_values(obj, names):
+    return np.array([obj.data.shape_keys.key_blocks[n].value for n in names])
+
+
+def snapshot():
+    """A comparable summary of the scene: objects, their vertices, transforms, keys and animation."""
+    out = {}
+    for o in bpy.data.objects:
+        keys = o.data.shape_keys if o.type == "MESH" else None
+        anim = keys.animation_data if keys is not None else None
+        out[o.name] = (mesh_verts(o).round(9).tobytes() if o.type == "MESH" else None,
+                       tuple(tuple(r) for r in o.matrix_world),
+                       tuple((k.name, round(k.value, 9)) for k in keys.key_blocks) if keys else (),
+                       anim.action.name if anim is not None and anim.action is not None else None)
+    out["__collections__"] = tuple(sorted(c.name for c in bpy.data.collections))
+    return out
+
+
+def code_surface(surface, alpha, subdivisions=1, seed=3):
+    """F(alpha) sampled on another triangulation of the sphere: -> verts, faces (a raw 'scan')."""
+    u, faces = synthetic.resampled_sphere(subdivisions, seed=seed)
+    return surface(u, np.asarray(alpha, dtype=np.float64)), faces

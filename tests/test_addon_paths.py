@@ -1,0 +1,402 @@
+"""bareesa.interpolate / extrapolate / transfer_motion / generate_random / build_basis / distance via bpy.ops."""
+
+import csv
+
+import numpy as np
+import pytest
+
+from tests.addon_support import (add_mesh, bpy, code_surface, key_values, scene, select, snapshot,  # noqa: F401
+                                 tiny)
+
+NAMES = ["pose_000", "pose_001", "shape_000", "shape_001"]
+A = np.array([0.2, -0.3, 0.4, 0.1])
+B = np.array([-0.5, 0.6, 0.1, 0.7])
+
+
+def registered(name, code, location=(0.0, 0.0, 0.0)):
+    """A template object with a code, as register_scan leaves it."""
+    from bareesa_addon import convert
+
+    bpy.ops.bareesa.load_template()
+    obj = bpy.context.active_object
+    obj.name = name
+    convert.set_code(obj, NAMES, code)
+    obj.location = location
+    bpy.context.view_layer.update()
+    return obj
+
+
+def keyed(obj):
+    from bareesa_addon import convert
+
+    frames = convert.keyed_frames(obj, NAMES)
+    return frames, np.stack([convert.code_at_frame(obj, NAMES, f) for f in frames])
+
+
+def decode(basis, code):
+    return basis.template + np.tensordot(np.asarray(code), basis.fields, axes=(-1, 0))
+
+
+# ------------------------------------------------------------------------------ interpolate
+
+
+def test_interpolate_keyframes_an_evenly_paced_geodesic_on_every_frame(scene, tiny, tmp_path):
+    from core.geodesic import step_lengths
+
+    basis = tiny[0]
+    a, b = registered("A", A), registered("B", B, location=(3.0, 0.0, 0.0))
+    scene.bareesa.make_collection = True
+    before = snapshot()
+    assert bpy.ops.bareesa.interpolate(object_a="A", object_b="B") == {"FINISHED"}
+    after = snapshot()
+    assert after["A"] == before["A"] and after["B"] == before["B"]
+    path_obj = bpy.data.objects["A_to_B"]
+    frames, codes = keyed(path_obj)
+    assert list(frames) == [1, 2, 3, 4, 5, 6]
+    assert np.allclose(codes[0], A, atol=1e-6) and np.allclose(codes[-1], B, atol=1e-6)
+    lengths = step_lengths(*basis.tensors(), codes, basis.weights)
+    assert lengths.std() < 0.05 * lengths.mean()
+    scene.frame_set(1)
+    assert np.allclose(path_obj.matrix_world.translation, (0, 0, 0), atol=1e-6)
+    scene.frame_set(6)
+    assert np.allclose(path_obj.matrix_world.translation, (3, 0, 0), atol=1e-6)
+    assert scene.bareesa.distance > 0 and scene.bareesa.distance_pair == "A - B"
+    meshes = sorted(bpy.data.collections["A_to_B_frames"].objects, key=lambda o: o.name)
+    assert len(meshes) == 6
+    v = np.empty(len(meshes[3].data.vertices) * 3)
+    meshes[3].data.vertices.foreach_get("co", v)
+    assert np.allclose(v.reshape(-1, 3), decode(basis, codes[3]), atol=1e-5)
+    # save -> reload keeps the keyframes
+    blend = tmp_path / "path.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    frames2, codes2 = keyed(bpy.data.objects["A_to_B"])
+    assert np.array_equal(frames2, frames) and np.allclose(codes2, codes)
+
+
+def test_interpolate_uses_selection_and_registers_a_raw_scan_end(scene, tiny):
+    surface = tiny[2]
+    a = registered("A", A)
+    scan = add_mesh("scan", *code_surface(surface, B), location=(2.0, 0.0, 0.0))
+    scene.bareesa.prealign = False
+    select(a, scan, active=scan)
+    assert bpy.ops.bareesa.interpolate() == {"FINISHED"}
+    reg = bpy.data.objects["scan_registered"]
+    frames, codes = keyed(bpy.data.objects["A_to_scan"])
+    assert np.allclose(codes[-1], key_values(reg, NAMES), atol=1e-6)
+    assert np.allclose(codes[0], A, atol=1e-6)
+
+
+def test_interpolate_two_raw_scans_by_symmetric_matching(scene, tiny):
+    surface = tiny[2]
+    scan_a = add_mesh("scan_a", *code_surface(surface, A, seed=4))
+    scan_b = add_mesh("scan_b", *code_surface(surface, B, seed=6), location=(3.0, 0.0, 0.0))
+    before = snapshot()
+    assert bpy.ops.bareesa.interpolate(object_a="scan_a", object_b="scan_b") == {"FINISHED"}
+    after = snapshot()
+    assert after["scan_a"] == before["scan_a"] and after["scan_b"] == before["scan_b"]
+    reg_a, reg_b = bpy.data.objects["scan_a_registered"], bpy.data.objects["scan_b_registered"]
+    frames, codes = keyed(bpy.data.objects["scan_a_to_scan_b"])
+    assert list(frames) == [1, 2, 3, 4, 5, 6]
+    assert np.allclose(codes[0], key_values(reg_a, NAMES), atol=1e-6)
+    assert np.allclose(codes[-1], key_values(reg_b, NAMES), atol=1e-6)
+    assert np.abs(codes[0] - A).max() < 0.3 and np.abs(codes[-1] - B).max() < 0.3
+    scene.frame_set(6)
+    assert np.allclose(bpy.data.objects["scan_a_to_scan_b"].matrix_world, reg_b.matrix_world, atol=1e-5)
+
+
+def test_interpolate_refuses_an_edited_registered_object_and_changes_nothing(scene):
+    import bmesh
+
+    a, b = registered("A", A), registered("B", B)
+    bm = bmesh.new()
+    bm.from_mesh(b.data)
+    bm.verts.ensure_lookup_table()
+    bm.verts.remove(bm.verts[0])
+    bm.to_mesh(b.data)
+    bm.free()
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="no longer has the topology"):
+        bpy.ops.bareesa.interpolate(object_a="A", object_b="B")
+    assert snapshot() == before
+
+
+def test_interpolate_refuses_objects_of_different_bases(scene, tiny, tmp_path):
+    import shutil
+
+    registered("A", A)
+    other = tmp_path / "other.npz"
+    shutil.copy(tiny[1], other)
+    bpy.ops.bareesa.load_template(basis=str(other))
+    bpy.context.active_object.name = "B"
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="different bases"):
+        bpy.ops.bareesa.interpolate(object_a="A", object_b="B")
+    with pytest.raises(RuntimeError, match="choose two objects"):
+        select()
+        bpy.ops.bareesa.interpolate()
+    assert snapshot() == before
+
+
+# ------------------------------------------------------------------------------ extrapolate
+
+
+def test_extrapolate_two_objects_continues_the_geodesic_as_keyframes(scene, tiny):
+    from core.shooting import extrapolate
+
+    basis = tiny[0]
+    registered("A", 0.5 * A), registered("B", 0.5 * B)
+    scene.bareesa.extrapolate_steps, scene.bareesa.extrapolate_spacing = 2, 5
+    assert bpy.ops.bareesa.extrapolate(source="OBJECTS", object_a="A", object_b="B") == {"FINISHED"}
+    frames, codes = keyed(bpy.data.objects["A_B_extrapolated"])
+    assert list(frames) == [1, 6, 11, 16]
+    expected = extrapolate(*basis.tensors(), 0.5 * A, 0.5 * B, basis.weights, 2)
+    assert np.allclose(codes, expected, atol=1e-6)
+
+
+def test_extrapolate_keyframes_adds_keys_after_the_last_two(scene, tiny):
+    from bareesa_addon import convert
+    from core.shooting import extrapolate
+
+    basis = tiny[0]
+    obj = registered("anim", A)
+    convert.keyframe_codes(obj, NAMES, [1, 5], [0.5 * A, 0.5 * B])
+    scene.bareesa.extrapolate_steps = 2
+    select(obj)
+    assert bpy.ops.bareesa.extrapolate() == {"FINISHED"}
+    frames, codes = keyed(obj)
+    assert list(frames) == [1, 5, 9, 13]
+    expected = extrapolate(*basis.tensors(), 0.5 * A, 0.5 * B, basis.weights, 2)
+    assert np.allclose(codes, expected, atol=1e-6)
+
+
+def test_extrapolate_without_keyframes_reports_and_changes_nothing(scene):
+    select(registered("still", A))
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="keyframes"):
+        bpy.ops.bareesa.extrapolate()
+    assert snapshot() == before
+
+
+# ------------------------------------------------------------------------------ motion transfer
+
+POSES = np.array([[0.0, 0.0], [0.3, -0.2], [0.6, -0.1], [0.4, 0.5]])
+IDENTITY = np.array([0.9, -0.6])
+
+
+def expected_motion(source_shape):
+    return np.hstack([POSES, np.tile(IDENTITY, (len(POSES), 1))])
+
+
+def test_transfer_motion_from_shape_key_animation_keeps_pose_and_target_identity(scene):
+    from bareesa_addon import convert
+
+    src = registered("dancer", A)
+    convert.keyframe_codes(src, NAMES, [1, 2, 3, 4], np.hstack([POSES, np.tile([0.2, 0.2], (4, 1))]))
+    target = registered("target", np.r_[0.1, 0.1, IDENTITY])
+    scene.bareesa.frame_start, scene.bareesa.frame_end = 1, 4
+    assert bpy.ops.bareesa.transfer_motion(source="dancer", target="target") == {"FINISHED"}
+    frames, codes = keyed(target)
+    assert list(frames) == [1, 2, 3, 4]
+    assert np.allclose(codes, expected_motion(None), atol=1e-6)
+    assert scene.frame_current == 1
+
+
+def test_transfer_motion_from_any_animated_mesh_evaluated_per_frame(scene, tiny):
+    """A plain mesh (no basis keys) animated by its own shape key: evaluated by the depsgraph per frame."""
+    basis = tiny[0]
+    c0, c1 = np.r_[POSES[0], 0.2, 0.2], np.r_[POSES[3], 0.2, 0.2]
+    src = add_mesh("cache_like", decode(basis, c0), basis.faces)
+    src.shape_key_add(name="Basis")
+    key = src.shape_key_add(name="move")
+    key.data.foreach_set("co", decode(basis, c1).ravel())
+    for frame, value in ((1, 0.0), (4, 1.0)):
+        key.value = value
+        key.keyframe_insert("value", frame=frame)
+    target = registered("target", np.r_[0.0, 0.0, IDENTITY])
+    scene.bareesa.frame_start, scene.bareesa.frame_end = 1, 4
+    assert bpy.ops.bareesa.transfer_motion(source="cache_like", target="target") == {"FINISHED"}
+    frames, codes = keyed(target)
+    assert np.allclose(codes[0], np.r_[POSES[0], IDENTITY], atol=1e-5)
+    assert np.allclose(codes[-1], np.r_[POSES[3], IDENTITY], atol=1e-5)
+    assert np.allclose(codes[:, 2:], IDENTITY, atol=1e-6)
+
+
+def test_transfer_motion_from_an_ordered_collection_of_frame_objects(scene, tiny):
+    basis = tiny[0]
+    coll = bpy.data.collections.new("frames")
+    scene.collection.children.link(coll)
+    order = [1, 2, 3, 10]  # natural name order; created shuffled
+    for i in (10, 2, 1, 3):
+        obj = add_mesh(f"frame_{i}", decode(basis, np.r_[POSES[order.index(i)], 0.0, 0.0]), basis.faces)
+        scene.collection.objects.unlink(obj)
+        coll.objects.link(obj)
+    registered("target", np.r_[0.0, 0.0, IDENTITY])
+    scene.bareesa.frame_start = 20
+    assert bpy.ops.bareesa.transfer_motion(source_collection="frames", target="target") == {"FINISHED"}
+    frames, codes = keyed(bpy.data.objects["target"])
+    assert list(frames) == [20, 21, 22, 23]
+    assert np.allclose(codes, expected_motion(None), atol=1e-5)
+
+
+def test_transfer_motion_refuses_unknown_identity_group(scene):
+    from bareesa_addon import convert
+
+    src = registered("dancer", A)
+    convert.keyframe_codes(src, NAMES, [1, 6], [A, B])
+    registered("target", B)
+    scene.bareesa.identity_group = "body"
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="no group 'body'"):
+        bpy.ops.bareesa.transfer_motion(source="dancer", target="target")
+    assert snapshot() == before
+
+
+# ------------------------------------------------------------------------------ random bodies
+
+
+def test_generate_random_bakes_seeded_bodies_in_a_grid_collection(scene):
+    assert bpy.ops.bareesa.generate_random(count=4, seed=3) == {"FINISHED"}
+    coll = bpy.data.collections["tiny_random_seed3"]
+    objs = sorted(coll.objects, key=lambda o: o.name)
+    assert len(objs) == 4
+    codes = np.stack([key_values(o, NAMES) for o in objs])
+    assert np.isfinite(codes).all() and np.ptp(codes, axis=0).min() > 0
+    assert len({tuple(round(x, 6) for x in o.location) for o in objs}) == 4
+    bpy.data.collections.remove(coll)
+    for o in objs:
+        bpy.data.objects.remove(o)
+    assert bpy.ops.bareesa.generate_random(count=4, seed=3) == {"FINISHED"}
+    again = np.stack([key_values(o, NAMES) for o in sorted(bpy.data.collections["tiny_random_seed3"].objects,
+                                                           key=lambda o: o.name)])
+    assert np.allclose(again, codes)
+
+
+def test_generate_random_fitted_to_a_collection_of_registered_objects(scene):
+    coll = bpy.data.collections.new("cast")
+    scene.collection.children.link(coll)
+    for i, code in enumerate((A, B, 0.5 * (A + B), -A)):
+        obj = registered(f"person_{i}", code)
+        scene.collection.objects.unlink(obj)
+        coll.objects.link(obj)
+    scene.bareesa.fit_collection = coll
+    assert bpy.ops.bareesa.generate_random(count=3, seed=1) == {"FINISHED"}
+    assert len(bpy.data.collections["tiny_random_seed1"].objects) == 3
+
+
+def test_generate_random_without_a_distribution_reports_and_changes_nothing(scene, tiny, tmp_path):
+    from core.latent import save_basis
+
+    basis = tiny[0]
+    bare = type(basis)(template=basis.template, faces=basis.faces, fields=basis.fields, groups=basis.groups,
+                       weights=basis.weights, schedule=basis.schedule, name="bare")
+    save_basis(tmp_path / "bare.npz", bare)
+    scene.bareesa.basis = str(tmp_path / "bare.npz")
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="stores no distribution"):
+        bpy.ops.bareesa.generate_random()
+    assert snapshot() == before
+
+
+# ------------------------------------------------------------------------------ build basis
+
+
+def test_build_basis_from_an_animated_mesh_saves_and_loads_it(scene, tiny, tmp_path):
+    basis = tiny[0]
+    src = add_mesh("performer", basis.template, basis.faces)
+    src.shape_key_add(name="Basis")
+    for name, field in (("bend", basis.fields[0]), ("bulge", basis.fields[2])):
+        key = src.shape_key_add(name=name)
+        key.data.foreach_set("co", (basis.template + field).ravel())
+    rng = np.random.default_rng(0)
+    for frame in range(1, 7):
+        for name in ("bend", "bulge"):
+            key = src.data.shape_keys.key_blocks[name]
+            key.value = float(rng.uniform(0, 1))
+            key.keyframe_insert("value", frame=frame)
+    select(src)
+    s = scene.bareesa
+    s.build_name, s.build_group, s.build_components = "learned", "pose", 5
+    assert bpy.ops.bareesa.build_basis() == {"FINISHED"}
+    path = tmp_path / "user_bases" / "learned.npz"
+    assert path.exists() and s.basis == str(path)
+    template = bpy.context.active_object
+    names = [k.name for k in template.data.shape_keys.key_blocks]
+    assert names[:3] == ["Basis", "pose_000", "pose_001"] and len(names) <= 6
+    from core.latent import load_basis
+
+    ratios = load_basis(path).provenance["groups"]["pose"]["variance_ratios"]
+    assert sum(ratios[:2]) > 0.9999  # the frames mix two shape keys: two motions (Blender's float32 noise aside)
+    assert bpy.ops.bareesa.load_template(basis="learned") == {"FINISHED"}
+    assert scene.frame_current == 1
+
+
+def test_build_basis_refuses_a_collection_of_mixed_topologies(scene, tiny):
+    basis, _, surface = tiny
+    coll = bpy.data.collections.new("mixed")
+    scene.collection.children.link(coll)
+    for name, (v, f) in (("m1", (basis.template, basis.faces)), ("m2", code_surface(surface, A, seed=5))):
+        obj = add_mesh(name, v, f)
+        scene.collection.objects.unlink(obj)
+        coll.objects.link(obj)
+    scene.bareesa.build_collection = coll
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="one topology"):
+        bpy.ops.bareesa.build_basis()
+    assert snapshot() == before
+
+
+# ------------------------------------------------------------------------------ distance
+
+
+def test_distance_between_two_objects_shown_in_settings(scene, tiny):
+    from core.geodesic import geodesic
+
+    basis = tiny[0]
+    registered("A", A), registered("B", B)
+    assert bpy.ops.bareesa.distance(object_a="A", object_b="B") == {"FINISHED"}
+    expected = geodesic(*basis.tensors(), A, B, basis.weights, steps=scene.bareesa.steps).distance
+    assert scene.bareesa.distance == pytest.approx(expected, rel=1e-4)
+
+
+def test_distance_matrix_of_a_collection_written_to_csv(scene, tmp_path):
+    coll = bpy.data.collections.new("people")
+    scene.collection.children.link(coll)
+    for name, code in (("p1", A), ("p2", B), ("p3", 0.5 * A)):
+        obj = registered(name, code)
+        scene.collection.objects.unlink(obj)
+        coll.objects.link(obj)
+    out = tmp_path / "d.csv"
+    assert bpy.ops.bareesa.distance(collection="people", filepath=str(out)) == {"FINISHED"}
+    rows = list(csv.reader(out.open()))
+    assert rows[0] == ["", "p1", "p2", "p3"]
+    d = np.array([[float(x) for x in r[1:]] for r in rows[1:]])
+    assert d.shape == (3, 3) and np.allclose(d, d.T) and np.allclose(np.diag(d), 0) and (d[~np.eye(3, dtype=bool)] > 0).all()
+
+
+def test_transfer_motion_from_an_alembic_mesh_cache(scene, tiny, tmp_path):
+    """A mesh-sequence cache (Alembic, MeshSequenceCache modifier) is evaluated per frame like any animation."""
+    basis = tiny[0]
+    c0, c1 = np.r_[POSES[1], 0.3, 0.3], np.r_[POSES[2], 0.3, 0.3]
+    src = add_mesh("to_cache", decode(basis, c0), basis.faces)
+    src.shape_key_add(name="Basis")
+    key = src.shape_key_add(name="move")
+    key.data.foreach_set("co", decode(basis, c1).ravel())
+    for frame, value in ((1, 0.0), (4, 1.0)):
+        key.value = value
+        key.keyframe_insert("value", frame=frame)
+    select(src)
+    scene.frame_start, scene.frame_end = 1, 4
+    abc = tmp_path / "motion.abc"
+    assert bpy.ops.wm.alembic_export(filepath=str(abc), start=1, end=4, selected=True) == {"FINISHED"}
+    bpy.data.objects.remove(src)
+    assert bpy.ops.wm.alembic_import(filepath=str(abc)) == {"FINISHED"}
+    cache = bpy.context.selected_objects[0]
+    assert cache.modifiers[0].type == "MESH_SEQUENCE_CACHE" and cache.data.shape_keys is None
+    registered("target", np.r_[0.0, 0.0, IDENTITY])
+    scene.bareesa.frame_start, scene.bareesa.frame_end = 1, 4
+    assert bpy.ops.bareesa.transfer_motion(source=cache.name, target="target") == {"FINISHED"}
+    frames, codes = keyed(bpy.data.objects["target"])
+    assert list(frames) == [1, 2, 3, 4]
+    assert np.allclose(codes[0], np.r_[POSES[1], IDENTITY], atol=1e-4)
+    assert np.allclose(codes[-1], np.r_[POSES[2], IDENTITY], atol=1e-4)

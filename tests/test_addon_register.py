@@ -1,0 +1,162 @@
+"""bareesa.register_scan through bpy.ops (synchronous in background mode), its placement and its refusals."""
+
+import math
+
+import numpy as np
+import pytest
+
+from tests.addon_support import (add_mesh, bpy, code_surface, key_values, scene, select, snapshot,  # noqa: F401
+                                 tiny)
+
+from mathutils import Matrix  # noqa: E402 (after bpy)
+
+NAMES = ["pose_000", "pose_001", "shape_000", "shape_001"]
+ALPHA = np.array([0.6, -0.4, 0.5, 0.3])
+
+
+def world_verts(obj):
+    from bareesa_addon import convert
+
+    v, _ = convert.evaluated_mesh(obj, bpy.context.evaluated_depsgraph_get())
+    m = np.array(obj.matrix_world)
+    return v @ m[:3, :3].T + m[:3, 3]
+
+
+def test_register_scan_in_template_frame_gives_code_as_shape_keys_and_leaves_scan_untouched(scene, tiny):
+    _, _, surface = tiny
+    verts, faces = code_surface(surface, ALPHA)
+    scan = add_mesh("scan", verts, faces, location=(2.0, 0.0, 1.0))
+    scan.rotation_euler = (0.0, 0.0, math.radians(30))
+    bpy.context.view_layer.update()
+    select(scan)
+    scene.bareesa.prealign = False
+    before = snapshot()
+    assert bpy.ops.bareesa.register_scan() == {"FINISHED"}
+    after = snapshot()
+    assert after["scan"] == before["scan"]
+    reg = bpy.data.objects["scan_registered"]
+    assert [k.name for k in reg.data.shape_keys.key_blocks] == ["Basis"] + NAMES
+    assert np.abs(key_values(reg, NAMES) - ALPHA).max() < 0.1
+    assert len(reg.data.vertices) == 42 and reg["bareesa_scan"] == "scan"
+    assert reg["bareesa_varifold"] >= 0 and 0 <= reg["bareesa_chamfer"] < 0.5  # vertex sets of two coarse meshes
+    # without pre-alignment the registered object sits exactly in the scan's frame
+    assert np.allclose(np.array(reg.matrix_world), np.array(scan.matrix_world), atol=1e-6)
+    assert reg.select_get() and bpy.context.view_layer.objects.active == reg
+
+
+def test_register_scan_prealigned_overlays_a_moved_rescaled_scan(scene, tiny):
+    from core import synthetic
+    from core.evaluation import chamfer
+
+    _, _, surface = tiny
+    verts, faces = code_surface(surface, ALPHA)
+    rot = np.array(Matrix.Rotation(math.radians(50), 3, "Z") @ Matrix.Rotation(math.radians(20), 3, "X"))
+    move = lambda x: 2.5 * x @ rot.T + [0.3, -1.0, 0.2]  # noqa: E731
+    scan = add_mesh("moved", move(verts), faces, location=(1.0, 1.0, 0.0))
+    scan.scale = (0.5, 0.5, 0.5)
+    bpy.context.view_layer.update()
+    select(scan)
+    assert bpy.ops.bareesa.register_scan() == {"FINISHED"}
+    reg = bpy.data.objects["moved_registered"]
+    # F(alpha) vertex by vertex, carried into the world exactly as the scan was
+    truth = move(surface(synthetic.icosphere(1)[0], ALPHA))
+    m = np.array(scan.matrix_world)
+    truth = truth @ m[:3, :3].T + m[:3, 3]
+    size = np.ptp(truth, axis=0).max()
+    assert np.linalg.norm(world_verts(reg) - truth, axis=1).mean() < 0.1 * size  # fast schedule: rough
+    # exact placement: in the scan's local frame the object's vertices are the solver's, whose
+    # Chamfer distance to the scan the operator stored
+    local = (world_verts(reg) - m[:3, 3]) @ np.linalg.inv(m[:3, :3]).T
+    assert chamfer(local, move(verts)) == pytest.approx(reg["bareesa_chamfer"], rel=1e-5)
+
+
+def test_register_scan_accepts_quads_and_several_scans(scene):
+    bpy.ops.mesh.primitive_uv_sphere_add(segments=12, ring_count=6, radius=1.0, location=(0, 0, 0))
+    uv = bpy.context.active_object
+    bpy.ops.mesh.primitive_cube_add(size=1.6, location=(4, 0, 0))
+    cube = bpy.context.active_object
+    assert any(len(p.vertices) == 4 for p in uv.data.polygons)
+    select(uv, cube)
+    scene.bareesa.prealign = False
+    assert bpy.ops.bareesa.register_scan() == {"FINISHED"}
+    for name in ("Sphere_registered", "Cube_registered"):
+        obj = bpy.data.objects[name]
+        assert np.isfinite(key_values(obj, NAMES)).all()
+
+
+def test_register_scan_refuses_non_mesh_or_empty_selection(scene, tiny):
+    _, _, surface = tiny
+    scan = add_mesh("scan", *code_surface(surface, ALPHA))
+    empty = bpy.data.objects.new("empty", None)
+    scene.collection.objects.link(empty)
+    select(scan, empty)
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="not a mesh"):
+        bpy.ops.bareesa.register_scan()
+    select()
+    with pytest.raises(RuntimeError, match="select one or more"):
+        bpy.ops.bareesa.register_scan()
+    assert snapshot() == before
+
+
+def test_register_scan_refuses_nan_vertices(scene, tiny):
+    _, _, surface = tiny
+    verts, faces = code_surface(surface, ALPHA)
+    verts[5] = np.nan
+    select(add_mesh("bad", verts, faces))
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="(?i)non-finite|nan"):
+        bpy.ops.bareesa.register_scan()
+    assert snapshot() == before
+
+
+def test_register_scan_missing_basis_file_reports_and_changes_nothing(scene, tiny, tmp_path):
+    _, _, surface = tiny
+    select(add_mesh("scan", *code_surface(surface, ALPHA)))
+    scene.bareesa.basis = str(tmp_path / "gone.npz")
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="does not exist"):
+        bpy.ops.bareesa.register_scan()
+    assert snapshot() == before
+
+
+def test_diverged_registration_never_writes_nan_into_shape_keys(scene, tiny, monkeypatch):
+    import core.registration as registration
+
+    def diverged(basis, verts, faces, **kwargs):
+        n = basis.template.shape[0]
+        return registration.RegistrationResult(code=np.full(basis.n_fields, np.nan), vertices=np.full((n, 3), np.nan),
+                                               path=np.zeros((2, basis.n_fields)), transform=registration.Similarity(),
+                                               levels=[], varifold=float("nan"), chamfer=float("nan"), seconds=0.0)
+
+    monkeypatch.setattr(registration, "register", diverged)
+    _, _, surface = tiny
+    select(add_mesh("scan", *code_surface(surface, ALPHA)))
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="diverged"):
+        bpy.ops.bareesa.register_scan()
+    assert snapshot() == before
+
+
+def test_cancelled_registration_leaves_the_scene_exactly_as_it_was(scene, tiny, monkeypatch):
+    from bareesa_addon import jobs
+    from core.progress import CancelToken
+
+    def cancelled():
+        token = CancelToken()
+        token.cancel()
+        return token
+
+    monkeypatch.setattr(jobs, "new_token", cancelled)
+    _, _, surface = tiny
+    select(add_mesh("scan", *code_surface(surface, ALPHA)))
+    before = snapshot()
+    assert bpy.ops.bareesa.register_scan() == {"CANCELLED"}
+    assert snapshot() == before
+
+
+def test_every_solve_operator_is_undoable(scene):
+    for name in ("LOAD_TEMPLATE", "REGISTER_SCAN", "INTERPOLATE", "EXTRAPOLATE", "TRANSFER_MOTION",
+                 "GENERATE_RANDOM", "BUILD_BASIS", "DISTANCE"):
+        cls = getattr(bpy.types, f"BAREESA_OT_{name.lower()}")
+        assert "UNDO" in cls.bl_options and "REGISTER" in cls.bl_options
