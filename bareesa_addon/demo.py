@@ -240,7 +240,7 @@ def render_contact_sheet(png, scans, registered, path_obj, actor, randoms, frame
 
     # the sheet's extent (labels included) and a camera framing it exactly
     left, right = -0.6 * dx, (n_cols - 0.45) * dx
-    top, bottom = 0.62 * dz, -(len(rows) - 0.5) * dz
+    top, bottom = 0.62 * dz, -(len(rows) - 0.4) * dz
     span_x, span_z = right - left, top - bottom
     cam_data = bpy.data.cameras.new("sheet_camera")
     cam_data.type = "ORTHO"
