@@ -88,6 +88,18 @@ def _clean_faces(faces):
     return f[counts[inverse.ravel()] == 1]
 
 
+def _drop_nonmanifold(faces, max_rounds=5):
+    """Remove the faces on edges shared by more than two faces (a scanner's clean-up step)."""
+    for _ in range(max_rounds):
+        edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        _, inverse, counts = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
+        bad = (counts[inverse.ravel()] > 2).reshape(-1, 3).any(1)
+        if not bad.any():
+            break
+        faces = faces[~bad]
+    return faces
+
+
 def _vertex_adjacency(n, faces):
     e = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
     a = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
@@ -127,7 +139,8 @@ def cluster_remesh(verts, faces, pitch, rng):
 
     The surface is first subdivided until every edge is shorter than pitch / 3,
     so each occupied cell holds several vertices; each cell's vertices merge
-    into their area-weighted mean.
+    into their area-weighted mean. Faces on non-manifold edges (where a thin
+    part collapsed) are removed, as a scanner's clean-up would.
     """
     fine_v, fine_f = trimesh.remesh.subdivide_to_size(verts, faces, max_edge=pitch / 3.0, max_iter=12)
     fine_v, fine_f = np.asarray(fine_v, dtype=np.float64), np.asarray(fine_f, dtype=np.int64)
@@ -146,7 +159,7 @@ def cluster_remesh(verts, faces, pitch, rng):
     np.add.at(pos, cluster, fine_v * w[:, None])
     total = np.bincount(cluster, weights=w, minlength=n)
     pos /= total[:, None]
-    new_faces = _clean_faces(cluster[fine_f])
+    new_faces = _drop_nonmanifold(_clean_faces(cluster[fine_f]))
     if len(new_faces) == 0:
         raise InputError(f"remeshing at pitch {pitch:.4g} left no faces: the resolution is too coarse "
                          "for this mesh")

@@ -1,0 +1,62 @@
+"""Rebuild the bundled bases from nothing: ``python -m bases.build [humanoid] [deformables] [-o DIR]``.
+
+Deterministic (fixed seeds, single-threaded torch); needs the ``bpy`` module
+(``pip install -e ".[blender]"``) or Blender's own Python.
+"""
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+BASES_DIR = Path(__file__).resolve().parents[1]
+#: Bundled fields are stored in float16 (bench/humanoid_accuracy.py compares against float64).
+FIELDS_DTYPE = np.float16
+
+
+def _log(msg):
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog="python -m bases.build", description=__doc__.splitlines()[0])
+    parser.add_argument("names", nargs="*", default=["deformables", "humanoid"],
+                        choices=["deformables", "humanoid"], help="bases to build (default: all)")
+    parser.add_argument("-o", "--output", type=Path, default=BASES_DIR, help="folder to write <name>.npz/.json")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch threads (default 1: deterministic and fastest on a shared machine)")
+    parser.add_argument("--full-precision", action="store_true", help="store fields in float64")
+    args = parser.parse_args(argv)
+
+    import torch
+
+    torch.set_num_threads(args.threads)
+    try:
+        import bpy  # noqa: F401
+    except ImportError:
+        sys.exit("building the bases needs the bpy module: pip install -e '.[blender]' (Python 3.11)")
+    from core.latent import save_basis
+
+    import importlib
+
+    builders = {n: importlib.import_module(f"bases.build.{n}").build for n in ("deformables", "humanoid")}
+    dtype = None if args.full_precision else FIELDS_DTYPE
+    total = time.perf_counter()
+    for name in dict.fromkeys(args.names):
+        start = time.perf_counter()
+        _log(f"building {name}")
+        basis, _ = builders[name](log=_log)
+        basis.provenance["fields_dtype"] = np.dtype(dtype or np.float64).name
+        path = args.output / f"{name}.npz"
+        save_basis(path, basis, fields_dtype=dtype)
+        _log(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB, {basis.n_fields} fields, "
+             f"{time.perf_counter() - start:.0f} s)")
+        _log(json.dumps({g: list(r) for g, r in basis.groups.items()}))
+    _log(f"all done in {time.perf_counter() - total:.0f} s")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,269 @@
+"""Accuracy of the bundled ``humanoid`` basis on data never used to build it.
+
+Held-out body types (``bases.build.humanoid.identity_sets()[1]``) performing held-out
+motions (``TEST_MOTIONS``) are regenerated with the Blender generator (needs ``bpy``).
+
+1. Registration: simulated scans (``core.scan_simulator``: voxel remesh, noise, holes,
+   random rigid motion and scale) registered with ``core.registration.register``; vertex
+   error against the true correspondence (mean, p95; mm and % of body height), Chamfer,
+   Hausdorff and squared varifold distance to the scan (scan units, scaled back to metres).
+2. Interpolation / extrapolation (the paper's Tables 3-4 protocol in miniature): endpoints
+   of held-out mini-sequences are projected onto the basis; the H2 geodesic, the straight
+   line in latent space and the linear vertex blend of the true endpoints are compared with
+   the true in-between (resp. following) frames.
+3. Basis-size ablation (paper Table 3 style): projection error of held-out frames for
+   prefixes of the pose and shape groups.
+4. A contact sheet PNG (template, identities, a motion).
+
+Usage: python bench/humanoid_accuracy.py [--scans N] [--quick] [--out bench/out]
+"""
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def _table(rows, cols, title):
+    print(f"\n{title}")
+    widths = [max(len(c), *(len(f"{r[c]}") for r in rows)) for c in cols]
+    print("  ".join(c.rjust(w) for c, w in zip(cols, widths)))
+    for r in rows:
+        print("  ".join(f"{r[c]}".rjust(w) for c, w in zip(cols, widths)), flush=True)
+
+
+def held_out_data(log=print):
+    """Held-out identities: rest meshes and held-out motions (T, N, 3), from the Blender generator."""
+    from bases.build import humanoid
+
+    gen = humanoid.Generator(log)
+    _, test = humanoid.identity_sets()
+    faces = gen.rest_mesh({})[1]
+    rests = [gen.rest_mesh(p)[0] for p in test]
+    seqs = {(i, m): gen.motion(p, m) for i, p in enumerate(test) for m in humanoid.TEST_MOTIONS}
+    return gen, faces, rests, seqs
+
+
+# --------------------------------------------------------------------------- registration
+
+
+def registration_rows(basis, faces, seqs, n_scans, seed=0):
+    from core.evaluation import chamfer, hausdorff, varifold, vertex_error
+    from core.registration import register
+    from core.scan_simulator import apply_similarity, simulate_scan
+
+    keys = sorted(seqs)
+    rows = []
+    for k in range(n_scans):
+        key = keys[k % len(keys)]
+        seq = seqs[key]
+        frame = [len(seq) // 2, len(seq) // 4, 3 * len(seq) // 4][(k // len(keys)) % 3]
+        true = seq[frame].astype(np.float64)
+        height = float(true[:, 2].max() - true[:, 2].min())
+        scan_v, scan_f, info = simulate_scan(true, faces, seed=seed + k, remesh="voxel", noise=0.001, holes=3,
+                                             scale=0.1)
+        t0 = time.perf_counter()
+        res = register(basis, scan_v, scan_f)
+        seconds = time.perf_counter() - t0
+        truth = apply_similarity(info, true)
+        err = vertex_error(res.vertices, truth)
+        s = info["scale"]
+        sigma = 0.025 * height * s  # the finest level of the paper's body schedule
+        rows.append({"scan": f"id{key[0]}/{key[1]}/f{frame}", "scan_verts": len(scan_v),
+                     "mean_mm": round(1e3 * err["mean"] / s, 1), "p95_mm": round(1e3 * err["p95"] / s, 1),
+                     "mean_%h": round(100 * err["mean"] / s / height, 3),
+                     "p95_%h": round(100 * err["p95"] / s / height, 3),
+                     "chamfer_mm": round(1e3 * chamfer(res.vertices, scan_v) / s, 1),
+                     "hausdorff_mm": round(1e3 * hausdorff(res.vertices, scan_v) / s, 1),
+                     "varifold": float(f"{varifold(res.vertices, basis.faces, scan_v, scan_f, sigma) / s**4:.3g}"),
+                     "seconds": round(seconds, 1)})
+        _table(rows[-1:], list(rows[-1]), "") if k == 0 else print(
+            "  ".join(str(v) for v in rows[-1].values()), flush=True)
+    return rows
+
+
+# ---------------------------------------------------------------------- interpolation
+
+
+def _distances(pred, true, faces, sigma):
+    from core.evaluation import chamfer, hausdorff, varifold
+
+    return np.array([hausdorff(pred, true), chamfer(pred, true), varifold(pred, faces, true, faces, sigma)])
+
+
+def interpolation_rows(basis, seqs, span=6, geodesic_steps=None):
+    """Interpolation between frames (k, k + span) and extrapolation from (k, k + 1) to k + 2 .. k + span."""
+    import torch
+
+    from core.geodesic import geodesic
+    from core.latent import project_to_basis
+    from core.shooting import extrapolate
+
+    t, f, h = basis.tensors()
+    faces = basis.faces
+    out = {"interpolation": {m: [] for m in ("H2 geodesic", "latent line", "vertex blend")},
+           "extrapolation": {m: [] for m in ("H2 geodesic", "latent line", "vertex blend")}}
+    for key in sorted(seqs):
+        seq = seqs[key].astype(np.float64)
+        height = float(seq[0][:, 2].max() - seq[0][:, 2].min())
+        sigma = 0.025 * height
+        for k in (1, len(seq) // 2 - span // 2):
+            if k + span >= len(seq):
+                continue
+            true = seq[k:k + span + 1]
+            # interpolation
+            a0, a1 = project_to_basis(basis, true[0])[0], project_to_basis(basis, true[-1])[0]
+            g = geodesic(t, f, h, a0, a1, basis.weights, steps=span + 1).path
+            lam = np.linspace(0, 1, span + 1)[:, None]
+            line = (1 - lam) * a0 + lam * a1
+            decode = lambda p: basis.template + np.tensordot(p, basis.fields, axes=1)  # noqa: E731
+            blend = (1 - lam[:, :, None]) * true[0] + lam[:, :, None] * true[-1]
+            for name, path in (("H2 geodesic", decode(g)), ("latent line", decode(line)), ("vertex blend", blend)):
+                d = np.mean([_distances(path[j], true[j], faces, sigma) for j in range(1, span)], axis=0)
+                out["interpolation"][name].append(d)
+            # extrapolation from two consecutive frames
+            b0, b1 = project_to_basis(basis, true[0])[0], project_to_basis(basis, true[1])[0]
+            ex = extrapolate(t, f, h, b0, b1, basis.weights, span - 1)
+            steps = np.arange(span + 1)[:, None]
+            line = b0 + steps * (b1 - b0)
+            blend = true[0] + steps[:, :, None] * (true[1] - true[0])
+            for name, path in (("H2 geodesic", decode(ex)), ("latent line", decode(line)), ("vertex blend", blend)):
+                d = np.mean([_distances(path[j], true[j], faces, sigma) for j in range(2, span + 1)], axis=0)
+                out["extrapolation"][name].append(d)
+        torch.set_num_threads(torch.get_num_threads())
+    rows = []
+    for task, methods in out.items():
+        for name, ds in methods.items():
+            m = np.mean(ds, axis=0)
+            rows.append({"task": task, "method": name, "hausdorff_mm": round(1e3 * m[0], 1),
+                         "chamfer_mm": round(1e3 * m[1], 2), "varifold": float(f"{m[2]:.3g}"), "n": len(ds)})
+    return rows
+
+
+# ---------------------------------------------------------------------------- ablation
+
+
+def ablation_rows(basis, rests, seqs, pose_sizes, shape_sizes):
+    """RMS projection error (mm) of held-out frames onto prefixes of the pose and shape groups."""
+    frames = np.concatenate([np.stack(rests)] + [s[1::2] for s in seqs.values()]).astype(np.float64)
+    ps, ss = basis.group_slice("pose"), basis.group_slice("shape")
+    rows = []
+    for kp in pose_sizes:
+        row = {"pose \\ shape": kp}
+        for ks in shape_sizes:
+            idx = np.r_[ps.start:ps.start + min(kp, ps.stop - ps.start), ss.start:ss.start + min(ks, ss.stop - ss.start)]
+            a = basis.fields[idx].reshape(len(idx), -1).T
+            x = (frames - basis.template).reshape(len(frames), -1).T
+            coef, *_ = np.linalg.lstsq(a, x, rcond=None)
+            r = (x - a @ coef).T.reshape(len(frames), -1, 3)
+            row[str(ks)] = round(1e3 * float(np.sqrt((r ** 2).sum(-1).mean())), 2)
+        rows.append(row)
+    return rows
+
+
+# ------------------------------------------------------------------------- contact sheet
+
+
+def render(ax, verts, faces, elev=8, azim=-90, color=(0.75, 0.78, 0.85)):
+    """Flat-shaded matplotlib rendering of a mesh into a 3D axis."""
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    p = verts[faces]
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
+    light = np.array([0.35, -0.85, 0.4])
+    shade = 0.25 + 0.75 * np.clip(n @ (light / np.linalg.norm(light)), 0, 1)
+    ax.add_collection3d(Poly3DCollection(p, facecolors=np.clip(shade[:, None] * color, 0, 1), edgecolor="none"))
+    c = 0.5 * (verts.max(0) + verts.min(0))
+    r = 0.5 * (verts.max(0) - verts.min(0)).max()
+    ax.set_xlim(c[0] - r, c[0] + r), ax.set_ylim(c[1] - r, c[1] + r), ax.set_zlim(c[2] - r, c[2] + r)
+    ax.set_box_aspect((1, 1, 1))
+    ax.view_init(elev, azim)
+    ax.axis("off")
+
+
+def contact_sheet(path, basis, gen, seqs):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from bases.build import humanoid
+
+    train, test = humanoid.identity_sets()
+    rows = [("template + training identities", [basis.template] + [gen.rest_mesh(p)[0] for p in train[:5]]),
+            ("held-out identities", [gen.rest_mesh(p)[0] for p in test] + [None, None]),
+            ("training motion 'squat' (template body)", list(gen.motion({}, "squat")[::3])[:6]),
+            ("held-out motion 'lunge' (held-out identity 0)", list(seqs[(0, "lunge")][::3])[:6])]
+    fig = plt.figure(figsize=(12, 9.5))
+    for i, (title, meshes) in enumerate(rows):
+        for j, v in enumerate(meshes[:6]):
+            if v is None:
+                continue
+            ax = fig.add_subplot(len(rows), 6, 6 * i + j + 1, projection="3d")
+            render(ax, np.asarray(v, dtype=np.float64), basis.faces, color=(0.85, 0.75, 0.65) if i % 2 else
+                   (0.7, 0.78, 0.9))
+            if j == 0:
+                ax.set_title(title, loc="left", fontsize=9)
+    fig.subplots_adjust(0, 0, 1, 0.97, 0, 0.08)
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+# ------------------------------------------------------------------------------- main
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--basis", default="humanoid")
+    parser.add_argument("--scans", type=int, default=8, help="number of simulated scans to register")
+    parser.add_argument("--skip", nargs="*", default=[], choices=["registration", "interpolation", "ablation",
+                                                                   "sheet"])
+    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "out")
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args(argv)
+    import torch
+
+    torch.set_num_threads(args.threads)
+    from core.latent import load_basis
+
+    basis = load_basis(args.basis)
+    args.out.mkdir(parents=True, exist_ok=True)
+    height = float(basis.template[:, 2].max() - basis.template[:, 2].min())
+    print(f"basis {basis.name}: {len(basis.template)} vertices, groups {basis.groups}, height {height:.3f} m")
+    gen, faces, rests, seqs = held_out_data(log=lambda *_: None)
+    if not np.array_equal(faces, basis.faces):
+        sys.exit("the generator's topology differs from the bundled basis: rebuild with python -m bases.build")
+    results = {}
+    if "ablation" not in args.skip:
+        ps, ss = basis.group_slice("pose"), basis.group_slice("shape")
+        np_, ns = ps.stop - ps.start, ss.stop - ss.start
+        rows = ablation_rows(basis, rests, seqs, sorted({10, 20, 40, 60, np_} & set(range(1, np_ + 1))),
+                             sorted({2, 4, 8, ns} & set(range(1, ns + 1))))
+        _table(rows, list(rows[0]), "Ablation: RMS projection error (mm) of held-out frames, pose rows x shape columns")
+        results["ablation"] = rows
+    if "sheet" not in args.skip:
+        contact_sheet(args.out / "humanoid_contact_sheet.png", basis, gen, seqs)
+        print(f"\nwrote {args.out / 'humanoid_contact_sheet.png'}")
+    if "interpolation" not in args.skip:
+        rows = interpolation_rows(basis, seqs)
+        _table(rows, list(rows[0]), "Interpolation (frames k -> k+6) and extrapolation (k, k+1 -> k+2..k+6) "
+               "on held-out motions of held-out identities; mean over in-between frames")
+        results["interpolation"] = rows
+    if "registration" not in args.skip and args.scans > 0:
+        print("\nRegistration of simulated scans of held-out identities in held-out motions")
+        rows = registration_rows(basis, faces, seqs, args.scans)
+        mean = {k: round(float(np.mean([r[k] for r in rows])), 3) for k in rows[0] if k not in ("scan",)}
+        print("mean  " + "  ".join(f"{k}={v}" for k, v in mean.items()))
+        results["registration"] = {"rows": rows, "mean": mean}
+    (args.out / "humanoid_accuracy.json").write_text(json.dumps(results, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,124 @@
+"""Tests of the bundled bases (bases/*.npz) and of their Blender generator (bases/build)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from core.latent import BUNDLED_DIR, decode, load_basis, project_to_basis
+from core.mesh import validate_mesh
+
+BUNDLED = ["humanoid", "deformables"]
+
+
+@pytest.fixture(scope="module", params=BUNDLED)
+def basis(request):
+    return load_basis(request.param)
+
+
+def test_bundled_bases_load_by_name_and_validate(basis):
+    assert basis.n_fields == basis.fields.shape[0] > 0
+    assert set(basis.groups) == {"pose", "shape"}
+    assert basis.fields.dtype == np.float64 and np.isfinite(basis.fields).all()
+
+
+def test_bundled_template_is_closed_and_manifold(basis):
+    rep = validate_mesh(basis.template, basis.faces, basis.name)
+    assert rep.n_boundary_edges == 0 and rep.n_nonmanifold_edges == 0 and rep.n_degenerate_faces == 0
+    assert rep.n_unreferenced_verts == 0
+
+
+def test_bundled_basis_card_matches_arrays(basis):
+    card = json.loads((BUNDLED_DIR / f"{basis.name}.json").read_text())
+    assert card["n_vertices"] == len(basis.template) and card["n_faces"] == len(basis.faces)
+    assert card["n_fields"] == basis.n_fields
+    assert {k: tuple(v) for k, v in card["groups"].items()} == basis.groups
+    for group in basis.groups:
+        assert card["provenance"]["groups"][group]["explained_variance"] > 0.9
+
+
+def test_bundled_basis_carries_a_fitted_distribution(basis):
+    for group, (a, b) in basis.groups.items():
+        w = basis.extras[f"gmm_{group}_weights"]
+        means, covs = basis.extras[f"gmm_{group}_means"], basis.extras[f"gmm_{group}_covariances"]
+        assert np.isclose(w.sum(), 1) and means.shape == (len(w), b - a) and covs.shape == (len(w), b - a, b - a)
+        assert all(np.linalg.eigvalsh(c).min() > 0 for c in covs)
+
+
+def test_humanoid_sizes_are_as_documented():
+    b = load_basis("humanoid")
+    height = b.template[:, 2].max() - b.template[:, 2].min()
+    assert 5000 <= len(b.template) <= 10000
+    assert 1.6 < height < 1.85 and abs(b.scale - height) < 1e-9 and b.units == "m"
+    assert b.template[:, 2].min() > -0.01  # Z-up, standing on z = 0
+    assert b.weights.as_tuple() == (1, 1000, 100, 1, 1, 1)
+
+
+def test_deformables_sizes_are_as_documented():
+    b = load_basis("deformables")
+    assert 400 <= len(b.template) <= 2000
+
+
+def test_bases_fit_in_the_repository_budget():
+    total = sum(p.stat().st_size for p in BUNDLED_DIR.glob("*.npz"))
+    assert total <= 30e6
+
+
+def test_decoding_the_code_zero_gives_the_template(basis):
+    import torch
+
+    t, _, h = basis.tensors()
+    assert torch.equal(decode(t, h, torch.zeros(basis.n_fields, dtype=torch.float64)), t)
+
+
+def test_humanoid_rest_pose_differences_are_spanned_by_the_shape_group():
+    b = load_basis("humanoid")
+    a, z = b.group_slice("shape").start, b.group_slice("shape").stop
+    v = b.template + 0.7 * b.fields[a] - 0.4 * b.fields[z - 1]
+    code, rms = project_to_basis(b, v)
+    assert rms < 1e-9 and np.allclose(code[a], 0.7) and np.allclose(code[z - 1], -0.4)
+
+
+# --------------------------------------------------------------------------- generator (bpy)
+
+
+def test_humanoid_generator_gives_one_topology_for_two_body_types():
+    pytest.importorskip("bpy")
+    from bases.build import humanoid
+
+    gen = humanoid.Generator(log=lambda *_: None)
+    slim = dict(height=0.9, legs=1.1, arms=0.9, girth=0.85, belly=0.9, limbs=0.85, shoulders=0.85, hips=0.9)
+    broad = dict(height=1.1, legs=0.9, arms=1.1, girth=1.3, belly=1.45, limbs=1.25, shoulders=1.15, hips=1.2)
+    v0, f0 = gen.rest_mesh(slim)
+    v1, f1 = gen.rest_mesh(broad)
+    assert np.array_equal(f0, f1) and v0.shape == v1.shape
+    assert np.abs(v0 - v1).max() > 0.1  # really different bodies
+    for v, f in ((v0, f0), (v1, f1)):
+        rep = validate_mesh(v, f)
+        assert rep.n_boundary_edges == 0 and rep.n_nonmanifold_edges == 0
+    b = load_basis("humanoid")
+    if len(b.template) == len(v0):  # the bundled basis was built by this generator
+        assert np.array_equal(b.faces, f0)
+
+
+def test_humanoid_motion_keeps_topology_and_starts_at_rest():
+    pytest.importorskip("bpy")
+    from bases.build import humanoid
+
+    gen = humanoid.Generator(log=lambda *_: None)
+    rest, _ = gen.rest_mesh({})
+    seq = gen.motion({}, "squat")
+    assert seq.shape[1:] == rest.shape and len(seq) == humanoid.FRAMES // humanoid.BAKE_STEP + 1
+    assert np.abs(seq[0] - rest).max() < 1e-5 and np.abs(seq[len(seq) // 2] - rest).max() > 0.3
+
+
+def test_deformables_generator_keeps_topology_under_simple_deform():
+    pytest.importorskip("bpy")
+    from bases.build import blender, deformables
+
+    blender.reset_scene()
+    v, polys = deformables.identity_mesh(1.2, 0.8, 1.1)
+    obj = blender.mesh_object("capsule", v, polys)
+    deformables.animate(obj, [("BEND", "X", 90.0)])
+    seq = blender.bake(obj, [1, deformables.FRAMES])
+    assert seq.shape == (2, len(v), 3) and np.abs(seq[0] - v).max() < 1e-6 and np.abs(seq[1] - v).max() > 0.2
