@@ -28,8 +28,8 @@ def body_basis(script, n_fields=170, n_shape=40, seed=0, amplitude=0.02):
                  weights="body", schedule=PAPER_BODY_SCHEDULE, scale=1.7, units="m", name="synthetic_body")
 
 
-def body_scan(basis, code, subdivisions=2, noise=0.002, seed=0):
-    """F(code) subdivided (~55k faces at 2), noisy, with vertex and face order shuffled."""
+def body_scan(basis, code, subdivisions=1, noise=0.002, seed=0):
+    """F(code) subdivided (55,104 faces at 1), noisy, with vertex and face order shuffled."""
     v = basis.template + np.tensordot(code, basis.fields, axes=1)
     m = trimesh.Trimesh(v, basis.faces, process=False)
     for _ in range(subdivisions):

@@ -152,6 +152,19 @@ def test_path_energy_per_step_sums_to_total_and_uses_midpoints():
     assert torch.isclose(steps[0], 2 * H.squared_norm(mid, f, path[1] - path[0], FACE), rtol=1e-12)
 
 
+@pytest.mark.parametrize("weights", [(1, 0, 0, 0, 0, 0), (0, 1, 0, 0, 0, 0), (0, 0, 5, 0, 0, 0), (0, 0, 0, 1, 0, 0),
+                                     (0, 0, 0, 0, 1, 0), (0, 0, 0, 0, 0, 1), (1, 1000, 100, 1, 1, 1)])
+def test_closed_form_path_energy_matches_the_feature_form_term_by_term(weights):
+    # path_energy uses a closed per-face formula; squared_norm the feature vectors of the Gram matrix
+    v, f = _mesh(seed=3)
+    path = _smooth_path(v, t=3, seed=2)
+    w = H.H2Weights(*weights)
+    steps = H.path_energy(path, f, w, per_step=True)
+    for k in range(2):
+        mid, step = (path[k] + path[k + 1]) / 2, path[k + 1] - path[k]
+        assert torch.isclose(steps[k], 2 * H.squared_norm(mid, f, step, w), rtol=1e-11)
+
+
 def test_path_energy_is_batched():
     v, f = _mesh()
     paths = torch.stack([_smooth_path(v, seed=0), _smooth_path(v, seed=1)])
