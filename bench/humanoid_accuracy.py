@@ -119,7 +119,7 @@ def interpolation_rows(basis, seqs, span=6, geodesic_steps=None):
             true = seq[k:k + span + 1]
             # interpolation
             a0, a1 = project_to_basis(basis, true[0])[0], project_to_basis(basis, true[-1])[0]
-            g = geodesic(t, f, h, a0, a1, basis.weights, steps=span + 1).path
+            g = geodesic(t, f, h, a0, a1, basis.weights, steps=span + 1, metric=basis.template_metric()).path
             lam = np.linspace(0, 1, span + 1)[:, None]
             line = (1 - lam) * a0 + lam * a1
             decode = lambda p: basis.template + np.tensordot(p, basis.fields, axes=1)  # noqa: E731

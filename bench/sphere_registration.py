@@ -66,7 +66,7 @@ def main():
         for sign in (1, -1):
             a, b, mid = frames[(fam, 30 * sign)], frames[(fam, 90 * sign)], frames[(fam, 60 * sign)]
             ca, cb = project_to_basis(basis, a)[0], project_to_basis(basis, b)[0]
-            g = geodesic(t, f, h, ca, cb, basis.weights, steps=9)
+            g = geodesic(t, f, h, ca, cb, basis.weights, steps=9, metric=basis.template_metric())
             h2_mid = decode_path(t, h, resample_path(t, f, h, g.path, basis.weights, 3))[1]
             lat_mid = decode_path(t, h, ((ca + cb) / 2)[None])[0]
             lin_mid = (a + b) / 2

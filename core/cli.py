@@ -167,7 +167,8 @@ def _geodesic_between(args):
     codes, matched = _codes(basis, [args.a, args.b])
     if matched is not None:
         return basis, matched.path, matched.distance, time.perf_counter() - start
-    g = geodesic(t, f, h, codes[0], codes[1], basis.weights, steps=max(args.steps, 3))
+    g = geodesic(t, f, h, codes[0], codes[1], basis.weights, steps=max(args.steps, 3),
+                 metric=basis.template_metric())
     return basis, g.path, g.distance, time.perf_counter() - start
 
 

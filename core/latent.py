@@ -90,6 +90,20 @@ class Basis:
                 torch.as_tensor(self.faces, dtype=torch.long, device=device),
                 torch.as_tensor(self.fields, dtype=dtype, device=device))
 
+    def template_metric(self, weights=None):
+        """G-bar(0), the latent metric at the template (P, P) float64 numpy, for ``weights``
+        (default the basis'). Computed once and kept in ``extras`` (so saved with the basis):
+        solvers use it to precondition (``whitening``)."""
+        w = H2Weights.parse(self.weights if weights is None else weights)
+        stored = self.extras.get("template_metric")
+        if stored is not None and np.array_equal(self.extras.get("template_metric_weights"), w.as_tuple()):
+            return stored
+        t, f, h = self.tensors()
+        with torch.no_grad():
+            gram = latent_metric(t, f, h, t.new_zeros(self.n_fields), w).numpy()
+        self.extras["template_metric"], self.extras["template_metric_weights"] = gram, np.array(w.as_tuple())
+        return gram
+
     def card(self):
         """The JSON-able metadata of the basis."""
         return {"format": FORMAT_VERSION, "name": self.name, "n_vertices": int(self.template.shape[0]),
@@ -142,6 +156,27 @@ def decode(template, fields, alpha):
 def latent_metric(template, faces, fields, alpha, weights):
     """The latent metric matrix G-bar(alpha): alpha (P,) -> (P, P)."""
     return h2_metric.metric_matrix(decode(template, fields, alpha), faces, fields, weights)
+
+
+def whitening(gram, floor=1e-10):
+    """B (P, P) with B G B^T = I for a latent metric G (P, P): z @ B maps unit-metric
+    coordinates z to latent vectors. Eigenvalues below floor x the largest are raised
+    to it (near-null directions). Solvers optimise in such coordinates (preconditioning)."""
+    g = torch.as_tensor(np.asarray(gram), dtype=torch.float64)
+    if g.dim() != 2 or g.shape[0] != g.shape[1] or not torch.isfinite(g).all():
+        raise InputError(f"a latent metric must be a finite square matrix, got shape {tuple(g.shape)}")
+    evals, evecs = torch.linalg.eigh((g + g.T) / 2)
+    top = float(evals.max())
+    if not top > 0:
+        raise InputError("the latent metric is not positive definite (all eigenvalues <= 0)")
+    return (evecs / torch.sqrt(evals.clamp_min(floor * top))).T.numpy()
+
+
+def time_whitening(n):
+    """R^-1 (n, n) with R^T R = K, K = tridiag(-1, 2, -1) the energy of n interior time points
+    of a path with fixed ends: whitens the time coupling of a discrete path energy."""
+    k = 2 * np.eye(n) - np.eye(n, k=1) - np.eye(n, k=-1)
+    return np.linalg.inv(np.linalg.cholesky(k).T)
 
 
 def latent_path_energy(template, faces, fields, path, weights, per_step=False):
@@ -222,6 +257,9 @@ def load_basis(name_or_path):
 # --------------------------------------------------------------------------- construction
 
 
+RANK_RTOL = 1e-6
+
+
 def principal_fields(tangents, n_components):
     """Leading principal directions of tangent vectors: (M, N, 3) -> fields (K, N, 3), variance ratios (K,).
 
@@ -234,7 +272,9 @@ def principal_fields(tangents, n_components):
     if m.shape[0] == 0:
         raise InputError("no tangent vectors: a group needs at least one sequence of two frames")
     _, s, vt = np.linalg.svd(m, full_matrices=False)
-    rank = int((s > s[0] * 1e-10).sum()) if s[0] > 0 else 0
+    # directions below RANK_RTOL x the leading singular value carry < 1e-12 of the variance: they
+    # are rounding noise (Blender bakes float32 frames), not motion, and would make bad fields
+    rank = int((s > s[0] * RANK_RTOL).sum()) if s[0] > 0 else 0
     if rank == 0:
         raise InputError("all tangent vectors are zero: the frames of a group do not move")
     k = min(n_components, rank)

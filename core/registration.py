@@ -43,7 +43,7 @@ from . import h2_metric
 from .errors import InputError, MeshError
 from .evaluation import chamfer
 from .h2_metric import H2Weights
-from .latent import Level, decode
+from .latent import Level, decode, time_whitening, whitening
 from .mesh import validate_mesh
 from .optimize import minimize_lbfgs
 from .progress import Monitor
@@ -365,15 +365,24 @@ class BinnedVarifoldLoss:
         keep = feat.abs().sum(1) > 0
         self.target = (x[keep], feat[keep])
         self.n_target = int(keep.sum())
-        with torch.no_grad():
-            self.self_t = self._inner(*self.target, *self.target)
+        self._self_t = None
+
+    @property
+    def self_t(self):
+        """|target|^2 (computed on first use: callers may first only look at the sizes)."""
+        if self._self_t is None:
+            with torch.no_grad():
+                self._self_t = self._inner(*self.target, *self.target)
+        return self._self_t
 
     def _inner(self, x, f, y, h, chunk=2**22):
         out = x.new_zeros(())
         rows = max(1, chunk // max(1, y.shape[0]))
+        y2 = (y * y).sum(1)[None, :]
         for s in range(0, x.shape[0], rows):
-            d = x[s:s + rows, None, :] - y[None, :, :]
-            out = out + (torch.exp(-self.g * (d * d).sum(-1)) * (f[s:s + rows] @ h.T)).sum()
+            xs = x[s:s + rows]
+            d2 = ((xs * xs).sum(1)[:, None] + y2 - 2 * xs @ y.T).clamp_min(0)
+            out = out + (torch.exp(-self.g * d2) * (f[s:s + rows] @ h.T)).sum()
         return out
 
     def __call__(self, verts, faces):
@@ -427,21 +436,42 @@ def resample_in_time(path, steps):
     return np.stack([np.interp(t_new, t_old, path[:, i]) for i in range(path.shape[1])], 1)
 
 
-def _path_from_variables(v, ramp):
-    """Latent path (T+1, P) from its variables (T, P): the end code alpha(1), then the deviations
-    d_k of alpha(k/T) from the straight line k/T alpha(1) (k = 1..T-1); ramp (T+1, 1) = k/T.
+class _PathVariables:
+    """The latent path (T+1, P) from 0 as optimisation variables v (T, P): the end code
+    alpha(1) = v_0 B and the deviations of alpha(k/T) from the straight line k/T alpha(1),
+    d = sqrt(1/T) R^-1 v_1.. B (k = 1..T-1), with B, R^-1 the metric and time whitenings
+    (``latent.whitening``, ``latent.time_whitening``).
 
     The end code carries the stiff varifold term, the deviations only the path energy, so the
-    two blocks decouple and L-BFGS converges in far fewer iterations than on the raw path.
+    blocks decouple; in whitened coordinates the path energy is close to |v|^2 and L-BFGS
+    converges in far fewer iterations than on the raw path.
     """
-    zero = v.new_zeros(1, v.shape[1])
-    return ramp * v[:1] + torch.cat([zero, v[1:], zero])
 
+    def __init__(self, steps, whiten_end, whiten_path):
+        self.steps = steps
+        self.b_end, self.b = np.asarray(whiten_end, np.float64), np.asarray(whiten_path, np.float64)
+        self.r_inv = time_whitening(steps - 1) * math.sqrt(1.0 / steps) if steps > 1 else np.zeros((0, 0))
+        self.ramp = np.linspace(0.0, 1.0, steps + 1)[:, None]
+        self._t = {}
 
-def _variables_from_path(path):
-    """Inverse of ``_path_from_variables``: path (T+1, P) from 0 -> variables (T, P)."""
-    ramp = np.linspace(0.0, 1.0, path.shape[0])[:, None]
-    return np.concatenate([path[-1:], (path - ramp * path[-1])[1:-1]])
+    def _tensors(self, like):
+        key = (like.dtype, like.device)
+        if key not in self._t:
+            self._t[key] = tuple(torch.as_tensor(a, dtype=like.dtype, device=like.device)
+                                 for a in (self.b_end, self.b, self.r_inv, self.ramp))
+        return self._t[key]
+
+    def path(self, v):
+        """Variables (T, P) tensor -> path (T+1, P) tensor."""
+        b_end, b, r_inv, ramp = self._tensors(v)
+        zero = v.new_zeros(1, v.shape[1])
+        return ramp * (v[:1] @ b_end) + torch.cat([zero, r_inv @ v[1:] @ b, zero])
+
+    def variables(self, path):
+        """Inverse of ``path``: path (T+1, P) numpy from 0 -> variables (T, P) numpy."""
+        dev = (path - self.ramp * path[-1])[1:-1]
+        inner = np.linalg.solve(self.r_inv, dev) @ np.linalg.inv(self.b) if len(dev) else dev
+        return np.concatenate([path[-1:] @ np.linalg.inv(self.b_end), inner])
 
 
 def _check_schedule(schedule):
@@ -579,6 +609,20 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
                               seconds=time.perf_counter() - start_time, prealignment=initial)
 
 
+def _normal_gram(verts, faces, fields):
+    """N_ij = sum_v A_v (h_i . n_v)(h_j . n_v): the L2 metric of the fields' normal components at the
+    template: (N, 3), (F, 3), (P, N, 3) -> (P, P) numpy."""
+    p = verts[faces]
+    cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    normals = np.zeros_like(verts)
+    for k in range(3):
+        np.add.at(normals, faces[:, k], cross)
+    area = np.linalg.norm(normals, axis=1) / 6  # |sum of adjacent a_f n_f| / 3, a_f = |cross| / 2
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    hn = np.einsum("pvk,vk->pv", fields, normals)
+    return (hn * area) @ hn.T
+
+
 class _Problem:
     """The constant parts of a registration (template tensors, scan, landmarks) and one level's solve."""
 
@@ -588,12 +632,12 @@ class _Problem:
         self.template, self.faces, self.fields = basis.tensors(dtype=dtype, device=device)
         area, self.center, _ = surface_moments(basis.template, basis.faces)
         self.center_t = torch.as_tensor(self.center, dtype=dtype, device=device)
-        # similarity variables scaled so that a unit step moves the surface about as much as a
-        # unit step of a code coefficient (rms field length): a well-conditioned joint problem
-        move = math.sqrt((basis.fields**2).sum(-1).mean())
-        radius = math.sqrt(((basis.template - self.center) ** 2).sum(-1).mean())
-        self.units = np.array([move / radius] * 3 + [move] * 3 + [move / radius])
-        self.units_t = torch.as_tensor(self.units, dtype=dtype, device=device)
+        # preconditioning (see _PathVariables): the path's interior is whitened by the latent
+        # metric at the template, the end code by an estimate of the level's Hessian
+        self.gram = basis.template_metric(metric)
+        self.whiten = whitening(self.gram)
+        self.normal_gram = _normal_gram(basis.template, basis.faces, basis.fields)
+        self.radius = math.sqrt(((basis.template - self.center) ** 2).sum(-1).mean())
         self.scan, self.scan_faces = sv, torch.as_tensor(sf, dtype=torch.long, device=device)
         self.scan_weights = None if face_w is None else torch.as_tensor(face_w, dtype=dtype, device=device)
         self.marks = marks
@@ -605,6 +649,7 @@ class _Problem:
         self.n_extra = 7 if refine_transform else 0
         self.dtype, self.device, self.monitor = dtype, device, monitor
         self.scale, self.n_fields = basis.scale, basis.n_fields
+        self.fields_np = basis.fields
 
     def solve_level(self, level, path, transform, progress, message):
         """Minimise one level from path (T0+1, P) and the alignment -> (path (T+1, P), alignment, report)."""
@@ -632,12 +677,12 @@ class _Problem:
 
         def objective(x):
             x = x.to(dtype=dtype, device=device)
-            alpha = _path_from_variables(x[:steps * p_dim].reshape(steps, p_dim), ramp)
+            alpha = variables.path(x[:steps * p_dim].reshape(steps, p_dim))
             meshes = decode(self.template, self.fields, alpha)
             energy = h2_metric.path_energy(meshes, self.faces, self.metric)
             final = meshes[-1]
             if self.n_extra:
-                p = x[steps * p_dim:] * self.units_t
+                p = x[steps * p_dim:] * units_t
                 final = self.center_t + torch.exp(p[6]) * (final - self.center_t) @ _rotation(p[:3]).T + p[3:6]
             gamma = loss(final, self.faces)
             fit = gamma
@@ -646,16 +691,23 @@ class _Problem:
             terms.update(energy=energy, gamma=gamma)
             return level.weight * fit + energy
 
-        ramp = torch.linspace(0, 1, steps + 1, dtype=dtype, device=device)[:, None]
-        x0 = np.concatenate([_variables_from_path(resample_in_time(path, steps)).ravel(), np.zeros(self.n_extra)])
+        # the varifold of a surface offset by d along its normals is ~ 2 pi int d^2 (any sigma), so
+        # weight * Gamma has Hessian ~ 4 pi weight N in the code (N = normal_gram) next to G-bar
+        whiten_end = whitening(self.gram + 4 * math.pi * level.weight * self.normal_gram)
+        variables = _PathVariables(steps, whiten_end, self.whiten)
+        # similarity variables scaled so that a unit step moves the surface about as much as a
+        # unit step of the (whitened) end code: a well-conditioned joint problem
+        move = math.sqrt((np.tensordot(whiten_end, self.fields_np, axes=1) ** 2).sum(-1).mean())
+        units = np.array([move / self.radius] * 3 + [move] * 3 + [move / self.radius])
+        units_t = torch.as_tensor(units, dtype=dtype, device=device)
+        x0 = np.concatenate([variables.variables(resample_in_time(path, steps)).ravel(), np.zeros(self.n_extra)])
         x, value, nit = minimize_lbfgs(objective, x0, self.monitor, max_iter=level.max_iter,
                                        progress=progress, message=message, ftol=LEVEL_FTOL)
         with torch.no_grad():
             objective(torch.from_numpy(x))
-        path = _path_from_variables(torch.from_numpy(x[:steps * p_dim].reshape(steps, p_dim)),
-                                    ramp.double().cpu()).numpy()
+        path = variables.path(torch.from_numpy(x[:steps * p_dim].reshape(steps, p_dim))).numpy()
         if self.n_extra:
-            delta = _delta_similarity(x[steps * p_dim:], self.center, self.units)
+            delta = _delta_similarity(x[steps * p_dim:], self.center, units)
             transform = delta.inverse().compose(transform)
         return path, transform, {"sigma": float(sigma), "weight": float(level.weight), "steps": int(steps),
                                  "iterations": int(nit), "energy": float(terms["energy"]),

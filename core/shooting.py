@@ -7,97 +7,334 @@ geodesic midpoint of alpha^0 and alpha^2, i.e. when
 
     Phi(alpha^2) = d/dalpha^1 [ W(alpha^0, alpha^1) + W(alpha^1, alpha^2) ] = 0.
 
-Phi is solved by a chord-Newton iteration whose Jacobian is the dominant term
--2 G-bar(m) (m the predicted midpoint), starting from the straight continuation
-2 alpha^1 - alpha^0 (exact when the metric is constant); if that stalls, the
-paper's nonlinear least squares (scipy) finishes the step.
+Phi costs one energy gradient (two meshes); its Jacobian is -2 G-bar(m) (m the
+midpoint) up to terms of the order of the step. The Jacobian is therefore
+approximated from a latent metric matrix that is computed rarely: once per
+extrapolation and again only when the iteration stops contracting (the metric
+varies slowly along the path), refined between refreshes by Broyden updates.
+A step has converged when the remaining correction is below ``tol`` times the
+step length, both measured in the metric. Strongly curved steps, where that
+iteration does not contract, are finished by a damped Newton method with the
+exact Jacobian (double backpropagation; P energy gradients per iteration).
 """
 
 import numpy as np
-import scipy.linalg
-import scipy.optimize
 import torch
 
+from . import geometry
 from .errors import BareEsaError, InputError
-from .latent import decode, latent_metric
-from .h2_metric import path_energy
+from .h2_metric import H2Weights, path_energy
+from .latent import decode
 from .progress import Monitor
+
+#: A step is accepted when the quasi-Newton correction, in the metric norm, is below
+#: STEP_TOL x the step length in the same norm (rounding noise sits near 1e-11).
+STEP_TOL = 1e-8
+#: The metric matrix is recomputed when one iteration shrinks the correction by less than this.
+REFRESH_RATIO = 0.3
+#: Metric eigenvalues below NULL_RTOL x the largest are null directions (dependent fields).
+NULL_RTOL = 1e-12
 
 
 class ShootingFailed(BareEsaError):
-    """A step of the initial value problem did not converge."""
+    """A step of the initial value problem did not converge or produced non-finite values."""
 
 
-def _step_energy_grad(template, faces, fields, a, b, weights, wrt):
-    """Gradient of W(a, b) w.r.t. a (wrt=0) or b (wrt=1): (P,), (P,) -> (P,) numpy."""
-    ends = [torch.as_tensor(x, dtype=template.dtype, device=template.device).clone() for x in (a, b)]
-    ends[wrt].requires_grad_(True)
-    e = path_energy(decode(template, fields, torch.stack(ends)), faces, weights)
-    (g,) = torch.autograd.grad(e, ends[wrt])
-    return g.detach().cpu().numpy().astype(np.float64)
+def _check_codes(p, **codes):
+    """Raise InputError unless every code is a finite (p,) vector; -> dict of float64 arrays."""
+    out = {}
+    for name, code in codes.items():
+        try:
+            c = np.asarray(code, dtype=np.float64)
+        except (TypeError, ValueError):
+            c = None
+        if c is None or c.shape != (p,):
+            raise InputError(f"{name} must be a latent code of {p} coefficients, got shape {np.shape(code)}")
+        if not np.isfinite(c).all():
+            raise InputError(f"{name} contains {int((~np.isfinite(c)).sum())} NaN or infinite coefficients")
+        out[name] = c
+    return out
 
 
-def geodesic_step(template, faces, fields, alpha0, alpha1, weights, tol=1e-10, max_iter=30):
+def jacobian_metric(verts, faces, fields, weights, chunk=1024):
+    """Latent metric matrix [G_q(h_i, h_j)] assembled face by face: (N, 3), (P, N, 3) -> (P, P).
+
+    The same matrix as ``h2_metric.metric_matrix`` (to rounding; degenerate faces
+    aside), several times faster at paper scale: the first-order terms are per-face
+    quadratic forms of the two edge variations, so G = sum_f E_f^T M_f E_f with the
+    6 x 6 blocks M_f read off ``path_energy`` on the face soup (one gradient of six
+    probes), plus a0 sum_v A_v <h, k> and a2 sum_v <L h, L k> / (4 A_v) with a sparse
+    cotangent Laplacian. Used as the quasi-Newton Jacobian of the geodesic step.
+    """
+    w = H2Weights.parse(weights)
+    verts = verts.detach()
+    p, n = fields.shape[:2]
+    n_faces = faces.shape[0]
+    gram = fields.new_zeros(p, p)
+    # fields as (N, 3P) columns (axis-major): a face's edge variations are (2, 3, P) -> (6, P)
+    columns = fields.detach().permute(1, 2, 0).reshape(n, 3 * p)
+    if w.a1 or w.b1 or w.c1 or w.d1:
+        soup = verts[faces].reshape(-1, 3)
+        soup_faces = torch.arange(3 * n_faces, device=verts.device).reshape(n_faces, 3)
+        probes = verts.new_zeros(6, n_faces, 3, 3)
+        for k in range(6):  # probe k moves corner 1 + k // 3 along axis k % 3 on every face
+            probes[k, :, 1 + k // 3, k % 3] = 1
+        probes = probes.reshape(6, 3 * n_faces, 3).requires_grad_(True)
+        first = H2Weights(0.0, w.a1, w.b1, w.c1, w.d1, 0.0)
+        with torch.enable_grad():  # path_energy([q - h/2, q + h/2]) = G_q(h, h); its gradient is 2 M h
+            e = path_energy(torch.stack([soup - probes / 2, soup + probes / 2], -3), soup_faces, first).sum()
+            (g,) = torch.autograd.grad(e, probes)
+        blocks = g.reshape(6, n_faces, 3, 3)[:, :, 1:, :].reshape(6, n_faces, 6).transpose(0, 1) / 2
+        blocks = (blocks + blocks.transpose(1, 2)) / 2  # (F, 6, 6)
+        for s in range(0, n_faces, chunk):
+            fc = faces[s:s + chunk]
+            edges = (columns[fc[:, 1:]] - columns[fc[:, :1]]).reshape(-1, 6, p)  # (f, 6, P)
+            gram += edges.reshape(-1, p).T @ torch.bmm(blocks[s:s + chunk], edges).reshape(-1, p)
+    if w.a0 or w.a2:
+        area = geometry.vertex_areas(verts, faces).repeat_interleave(3)  # (3N,) like columns.reshape(3N, P)
+        flat = columns.reshape(3 * n, p)
+        if w.a0:
+            gram += w.a0 * (flat * area[:, None]).T @ flat
+        if w.a2:
+            cot = geometry.corner_cotangents(verts, faces)
+            rows, cols, vals = [], [], []
+            for k in range(3):  # edge (i, j) opposite corner k, weight cot_k
+                i, j, c = faces[:, (k + 1) % 3], faces[:, (k + 2) % 3], cot[:, k]
+                rows += [i, j, i, j]
+                cols += [j, i, i, j]
+                vals += [-c, -c, c, c]
+            lap = torch.sparse_coo_tensor(torch.stack([torch.cat(rows), torch.cat(cols)]), torch.cat(vals),
+                                          (n, n), check_invariants=False).coalesce()
+            lh = torch.sparse.mm(lap, columns).reshape(3 * n, p)
+            inv = torch.where(area > 0, 1 / (4 * torch.where(area > 0, area, torch.ones_like(area))),
+                              torch.zeros_like(area))
+            gram += w.a2 * (lh * inv[:, None]).T @ lh
+    return (gram + gram.T) / 2
+
+
+class _Stepper:
+    """Consecutive geodesic steps of one problem sharing an approximate inverse Jacobian."""
+
+    def __init__(self, template, faces, fields, weights, tol=STEP_TOL, max_iter=40, refresh=REFRESH_RATIO):
+        for what, x in (("template", template), ("fields", fields)):
+            if not torch.isfinite(x).all():
+                raise InputError(f"NaN or infinite values in the basis {what}; check the basis file")
+        self.template, self.faces, self.fields = template, faces, fields
+        self.weights = H2Weights.parse(weights)
+        self.p = fields.shape[0]
+        floor = 1e3 * torch.finfo(template.dtype).eps  # reachable in the tensors' precision
+        self.tol, self.max_iter, self.refresh = max(float(tol), floor), int(max_iter), float(refresh)
+        self.metric = None  # G (P, P) numpy, the norm of the convergence test
+        self.inv_jac = None  # H ~ (dPhi/dalpha^2)^-1 = -(2 G)^-1, Broyden-updated
+        self.n_grad = self.n_metric = 0
+
+    def grads(self, a, b):
+        """(dW/da, dW/db) at codes a, b (P,) -> two (P,) float64 arrays; ShootingFailed if not finite."""
+        ends = torch.as_tensor(np.stack([a, b]), dtype=self.template.dtype, device=self.template.device)
+        ends.requires_grad_(True)
+        with torch.enable_grad():
+            e = path_energy(decode(self.template, self.fields, ends), self.faces, self.weights)
+            (g,) = torch.autograd.grad(e, ends)
+        self.n_grad += 1
+        g = g.detach().double().cpu().numpy()
+        if not (np.isfinite(g).all() and torch.isfinite(e)):
+            raise ShootingFailed("the H2 energy of a step is not finite: the decoded meshes degenerate "
+                                 "(coefficients too large for the basis); use a smaller velocity or fewer steps")
+        return g[0], g[1]
+
+    def refresh_jacobian(self, mid):
+        """Metric matrix at the latent midpoint mid (P,) and the chord inverse Jacobian -(2 G)^-1."""
+        m = torch.as_tensor(mid, dtype=self.template.dtype, device=self.template.device)
+        with torch.no_grad():
+            gram = jacobian_metric(decode(self.template, self.fields, m), self.faces, self.fields,
+                                   self.weights).double().cpu().numpy()
+        self.n_metric += 1
+        if not np.isfinite(gram).all():
+            raise ShootingFailed("the latent metric is not finite along the path: the decoded mesh degenerates; "
+                                 "use a smaller velocity or fewer steps")
+        evals, evecs = np.linalg.eigh(gram)
+        if not evals[-1] > 0:
+            raise ShootingFailed("the latent metric matrix is zero: the basis fields do not deform the mesh")
+        # pseudo-inverse: directions the metric does not see (linearly dependent fields) are not moved
+        keep = evals > NULL_RTOL * evals[-1]
+        self.metric = gram
+        self.inv_jac = -(evecs[:, keep] / (2 * evals[keep])) @ evecs[:, keep].T
+
+    def norm(self, v):
+        """sqrt(v^T G v), the metric length of a latent vector."""
+        return float(np.sqrt(abs(v @ self.metric @ v)))
+
+    def jacobian(self, a1, a2):
+        """Exact dPhi/dalpha^2 = d2 W / da db at (a1, a2) by double backpropagation: -> (P, P)."""
+        as_t = lambda a: torch.as_tensor(a, dtype=self.template.dtype, device=self.template.device)  # noqa: E731
+        start = as_t(a1)
+
+        def dw_da(end):
+            ends = torch.stack([start, end])
+            e = path_energy(decode(self.template, self.fields, ends), self.faces, self.weights)
+            return torch.autograd.grad(e, ends, create_graph=True)[0][0]
+
+        with torch.enable_grad():
+            jac = torch.autograd.functional.jacobian(dw_da, as_t(a2)).double().cpu().numpy()
+        self.n_grad += self.p
+        if not np.isfinite(jac).all():
+            raise ShootingFailed("the Jacobian of a geodesic step is not finite: the decoded meshes degenerate; "
+                                 "use a smaller velocity or fewer steps")
+        return jac
+
+    def step(self, a0, a1, guess=None, c=None):
+        """alpha^2 continuing a0, a1 (P,) -> (alpha^2, dW/da at (alpha^1, alpha^2) for the next step).
+
+        guess: initial alpha^2 (default 2 a1 - a0); c: dW/db at (a0, a1) if already known.
+        """
+        if c is None:
+            c = self.grads(a0, a1)[1]
+        x = 2 * a1 - a0 if guess is None else np.asarray(guess, dtype=np.float64)
+        try:
+            return self._quasi_newton(a0, a1, x, c)
+        except _Diverged as div:
+            return self._newton(a0, a1, div.best, c)
+
+    def _quasi_newton(self, a0, a1, x, c):
+        """Broyden iteration from the metric's chord Jacobian; raises _Diverged(best x) when it fails."""
+        fresh = self.inv_jac is None
+        if fresh:
+            self.refresh_jacobian((a1 + x) / 2)
+        length = self.norm(a1 - a0)
+        g_a, g_b = self.grads(a1, x)
+        r, prev, best = c + g_a, None, (np.inf, x)
+        for _ in range(self.max_iter):
+            d = -self.inv_jac @ r
+            err = self.norm(d)
+            if not (np.isfinite(err) and np.isfinite(d).all()):
+                raise _Diverged(best[1])
+            best = min(best, (err, x), key=lambda b: b[0])
+            if err <= self.tol * length:
+                return x, g_b
+            if prev is not None and err > self.refresh * prev:
+                if fresh and err > prev:  # diverging although the metric is current: far from linear
+                    raise _Diverged(best[1])
+                if not fresh:
+                    self.refresh_jacobian((a1 + x) / 2)  # the metric moved: recompute it here
+                    fresh, prev = True, None
+                    continue
+            prev = err
+            try:
+                g_a, g_b = self.grads(a1, x + d)
+            except ShootingFailed:
+                raise _Diverged(best[1]) from None
+            x, y, r = x + d, c + g_a - r, c + g_a
+            hy = self.inv_jac @ y
+            gd = self.metric @ d  # Broyden in the metric inner product: invariant to the scale of the fields
+            denom = gd @ hy
+            if abs(denom) > 1e-14 * np.linalg.norm(gd) * np.linalg.norm(hy):
+                self.inv_jac += np.outer(d - hy, gd @ self.inv_jac) / denom
+        raise _Diverged(best[1])
+
+    def _newton(self, a0, a1, x, c, max_iter=30):
+        """Damped Newton with the exact Jacobian (the fallback for strongly curved steps) -> (alpha^2, next c)."""
+        self.refresh_jacobian((a1 + x) / 2)
+        chord = self.inv_jac
+        length = self.norm(a1 - a0)
+        merit = lambda r: self.norm(chord @ r)  # noqa: E731  the residual in the metric's dual norm
+        r = c + self.grads(a1, x)[0]
+        for _ in range(max_iter):
+            jac = self.jacobian(a1, x)
+            d = -np.linalg.lstsq(jac, r, rcond=None)[0]
+            if self.norm(d) <= self.tol * length:
+                x = x + d
+                g_a, g_b = self.grads(a1, x)
+                self.inv_jac = np.linalg.pinv(jac)  # the exact Jacobian starts the next step's Broyden model
+                return x, g_b
+            t, m0 = 1.0, merit(r)
+            while t >= 1 / 64:  # backtracking on the metric-dual residual
+                try:
+                    r_new = c + self.grads(a1, x + t * d)[0]
+                    if merit(r_new) < (1 - 1e-4 * t) * m0:
+                        break
+                except ShootingFailed:
+                    pass
+                t /= 2
+            else:
+                break
+            x, r = x + t * d, r_new
+        raise ShootingFailed(f"a geodesic step did not converge (remaining correction {self.norm(d) / length:.1e} "
+                             "of the step length in the metric norm): the motion bends too fast for this step "
+                             "size; use smaller steps (more substeps when extrapolating, more steps when shooting)")
+
+
+class _Diverged(Exception):
+    """Internal: quasi-Newton failed; carries the best iterate for the Newton fallback."""
+
+    def __init__(self, best):
+        super().__init__("quasi-Newton diverged")
+        self.best = best
+
+
+def geodesic_step(template, faces, fields, alpha0, alpha1, weights, tol=STEP_TOL, max_iter=40):
     """alpha^2 such that alpha^1 is the discrete geodesic midpoint of alpha^0 and alpha^2: (P,) -> (P,).
 
     W is normalised by the step (duration 1 per step, so Phi is homogeneous of
-    degree one in the step size); tol is relative to |2 G-bar beta|.
+    degree one in the step size); tol bounds the remaining correction relative to
+    the step length |alpha^1 - alpha^0|, both in the metric norm. Raises
+    InputError for non-finite codes, ShootingFailed if the step cannot be solved.
     """
-    a0, a1 = np.asarray(alpha0, dtype=np.float64), np.asarray(alpha1, dtype=np.float64)
-    c = _step_energy_grad(template, faces, fields, a0, a1, weights, wrt=1)  # d2 W(a0, a1)
-
-    def phi(a2):
-        return c + _step_energy_grad(template, faces, fields, a1, a2, weights, wrt=0)
-
-    a2 = 2 * a1 - a0
-    scale = np.linalg.norm(c) + 1e-300
-    mid = torch.as_tensor((a1 + a2) / 2, dtype=template.dtype, device=template.device)
-    gram = latent_metric(template, faces, fields, mid, weights).detach().cpu().numpy().astype(np.float64)
-    chol = scipy.linalg.cho_factor(2 * gram)
-    r = phi(a2)
-    for _ in range(max_iter):
-        if np.linalg.norm(r) <= tol * scale:
-            return a2
-        a2 = a2 + scipy.linalg.cho_solve(chol, r)  # J ~ -2 G-bar(m)
-        r = phi(a2)
-    if np.linalg.norm(r) <= 1e-6 * scale:
-        return a2
-    res = scipy.optimize.least_squares(phi, a2, xtol=1e-14, ftol=1e-14, gtol=1e-14)
-    if np.linalg.norm(res.fun) > 1e-6 * scale:
-        raise ShootingFailed(f"a geodesic step did not converge (|Phi|/scale = {np.linalg.norm(res.fun) / scale:.2e});"
-                             " use more steps or a smaller velocity")
-    return res.x
+    codes = _check_codes(fields.shape[0], alpha0=alpha0, alpha1=alpha1)
+    stepper = _Stepper(template, faces, fields, weights, tol, max_iter)
+    return stepper.step(codes["alpha0"], codes["alpha1"])[0]
 
 
-def extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new, callback=None, cancel=None):
+def extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new, callback=None, cancel=None,
+                tol=STEP_TOL, substeps=1):
     """Continue the discrete geodesic through alpha^0, alpha^1 by n_new steps: -> (n_new + 2, P).
 
-    template (N, 3), faces (F, 3), fields (P, N, 3) torch tensors; codes (P,).
+    template (N, 3), faces (F, 3), fields (P, N, 3) torch tensors; codes (P,). The
+    steps share one quasi-Newton Jacobian (the metric matrix is recomputed only
+    when the iteration stops contracting) and start from a quadratic predictor.
+    substeps > 1 refines time: the boundary value geodesic alpha^0 -> alpha^1 with
+    substeps intervals is continued by n_new * substeps steps, and every substeps-th
+    point is returned (strongly curved motions need it: a step that does not
+    converge raises ShootingFailed).
     """
     p = fields.shape[0]
-    for code in (alpha0, alpha1):
-        code = np.asarray(code)
-        if code.shape != (p,) or not np.isfinite(code).all():
-            raise InputError(f"extrapolation needs two finite codes of {p} coefficients, got shape {code.shape}")
+    try:
+        codes = _check_codes(p, alpha0=alpha0, alpha1=alpha1)
+    except InputError as err:
+        raise InputError(f"extrapolation needs two finite codes of {p} coefficients: {err}") from None
     if n_new < 0:
         raise InputError(f"number of new steps must be >= 0, got {n_new}")
+    if int(substeps) != substeps or substeps < 1:
+        raise InputError(f"substeps must be a positive integer, got {substeps}")
+    substeps = int(substeps)
     monitor = Monitor("extrapolate", callback, cancel)
-    path = [np.asarray(alpha0, dtype=np.float64), np.asarray(alpha1, dtype=np.float64)]
-    for k in range(n_new):
+    path = [codes["alpha0"], codes["alpha1"]]
+    if substeps > 1 and n_new > 0:
+        from .geodesic import geodesic
+
+        monitor.report(0.0, "geodesic through the two given codes")
+        path = list(geodesic(template, faces, fields, path[0], path[1], weights, steps=substeps + 1,
+                             cancel=cancel).path[-2:])
+        path[-1] = codes["alpha1"]
+    stepper = _Stepper(template, faces, fields, weights, tol)
+    c = None
+    total = n_new * substeps
+    for k in range(total):
         monitor.check()
-        monitor.report(k / max(n_new, 1), f"step {k + 1}/{n_new}")
-        path.append(geodesic_step(template, faces, fields, path[-2], path[-1], weights))
+        monitor.report(k / max(total, 1), f"step {k + 1}/{total}")
+        guess = 3 * path[-1] - 3 * path[-2] + path[-3] if len(path) >= 3 else None
+        x, c = stepper.step(path[-2], path[-1], guess, c)
+        path.append(x)
     monitor.report(1.0, "done")
-    return np.stack(path)
+    return np.stack([codes["alpha0"], codes["alpha1"]] + path[1 + substeps::substeps])
 
 
 def shoot(template, faces, fields, alpha0, velocity, weights, steps=10, callback=None, cancel=None):
     """exp map: geodesic from alpha0 with initial velocity over unit time, steps >= 1: -> (steps + 1, P)."""
     if steps < 1:
         raise InputError(f"shooting needs at least one step, got {steps}")
-    alpha0 = np.asarray(alpha0, dtype=np.float64)
-    alpha1 = alpha0 + np.asarray(velocity, dtype=np.float64) / steps
-    return extrapolate(template, faces, fields, alpha0, alpha1, weights, steps - 1, callback, cancel)
+    codes = _check_codes(fields.shape[0], alpha0=alpha0, velocity=velocity)
+    alpha1 = codes["alpha0"] + codes["velocity"] / steps
+    return extrapolate(template, faces, fields, codes["alpha0"], alpha1, weights, steps - 1, callback, cancel)
 
 
 def initial_velocity(path):

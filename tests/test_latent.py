@@ -114,3 +114,42 @@ def test_build_basis_rejects_frames_in_another_topology():
         latent.build_basis(b.template, b.faces, {"pose": [np.zeros((3, 5, 3))]}, {"pose": 2})
     with pytest.raises(InputError, match="do not move"):
         latent.build_basis(b.template, b.faces, {"pose": [np.stack([b.template] * 3)]}, {"pose": 2})
+
+
+def test_principal_fields_keep_the_rank_and_drop_float32_rounding_noise():
+    rng = np.random.default_rng(0)
+    directions = rng.normal(size=(3, 50, 3))
+    tangents = np.tensordot(rng.normal(size=(40, 3)), directions, axes=1)
+    noisy = tangents.astype(np.float32).astype(np.float64)  # frames baked in float32
+    fields, ratios = latent.principal_fields(noisy, 10)
+    assert fields.shape == (3, 50, 3) and np.isclose(ratios.sum(), 1.0)
+    # the fields span the true directions
+    coef, *_ = np.linalg.lstsq(fields.reshape(3, -1).T, directions.reshape(3, -1).T, rcond=None)
+    residual = directions.reshape(3, -1).T - fields.reshape(3, -1).T @ coef
+    assert np.abs(residual).max() < 1e-5
+
+
+def test_whitening_makes_the_metric_the_identity_and_time_whitening_the_path_energy():
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(5, 5))
+    gram = a @ a.T + 1e-3 * np.eye(5)
+    b = latent.whitening(gram)
+    assert np.allclose(b @ gram @ b.T, np.eye(5), atol=1e-9)
+    r_inv = latent.time_whitening(4)
+    k = 2 * np.eye(4) - np.eye(4, k=1) - np.eye(4, k=-1)
+    assert np.allclose(r_inv.T @ k @ r_inv, np.eye(4), atol=1e-12)
+    with pytest.raises(InputError, match="positive definite"):
+        latent.whitening(-gram)
+
+
+def test_template_metric_is_cached_saved_and_recomputed_for_other_weights(tmp_path):
+    b, _ = synthetic.smooth_sphere_basis(subdivisions=1, n_fields=3)
+    t, f, h = b.tensors()
+    g = b.template_metric()
+    assert np.allclose(g, latent.latent_metric(t, f, h, torch.zeros(3, dtype=torch.float64), b.weights).numpy())
+    latent.save_basis(tmp_path / "b.npz", b)
+    loaded = latent.load_basis(tmp_path / "b.npz")
+    assert np.array_equal(loaded.extras["template_metric"], g) and loaded.template_metric() is loaded.extras[
+        "template_metric"]
+    other = loaded.template_metric((2, 1, 1, 1, 1, 5))
+    assert not np.allclose(other, g)

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from core import geodesic, latent, shooting, synthetic
+from core import geodesic, h2_metric, latent, shooting, synthetic
 from core.errors import InputError, SolveCancelled
 from core.progress import CancelToken
 from tests.test_latent import small_basis
@@ -68,3 +68,102 @@ def test_bad_codes_raise_input_error():
         shooting.extrapolate(t, f, h, np.zeros(3), np.zeros(4), b.weights, n_new=2)
     with pytest.raises(InputError, match="at least one step"):
         shooting.shoot(t, f, h, np.zeros(4), np.zeros(4), b.weights, steps=0)
+
+
+def test_non_finite_codes_raise_input_error_naming_the_code():
+    b = small_basis()
+    t, f, h = b.tensors()
+    with pytest.raises(InputError, match="alpha1 contains 1 NaN"):
+        shooting.geodesic_step(t, f, h, np.zeros(4), np.array([1.0, np.nan, 0.0, 0.0]), b.weights)
+    with pytest.raises(InputError, match="velocity contains 1 NaN"):
+        shooting.shoot(t, f, h, np.zeros(4), np.array([np.inf, 0.0, 0.0, 0.0]), b.weights)
+    bad = h.clone()
+    bad[1, 3, 0] = float("nan")
+    with pytest.raises(InputError, match="infinite values in the basis fields"):
+        shooting.extrapolate(t, f, bad, np.zeros(4), np.ones(4) * 0.1, b.weights, n_new=2)
+
+
+def test_overflowing_step_raises_shooting_failed_not_a_numpy_error():
+    b = small_basis()
+    t, f, h = b.tensors()
+    with pytest.raises(shooting.ShootingFailed, match="not finite"):
+        shooting.geodesic_step(t, f, h, np.zeros(4), np.full(4, 1e155), b.weights)
+
+
+@pytest.mark.parametrize("max_iter", [40, 0])  # quasi-Newton, and the exact-Newton fallback
+def test_energy_turning_nan_during_a_step_raises_shooting_failed(monkeypatch, max_iter):
+    b = small_basis()
+    t, f, h = b.tensors()
+    calls = {"n": 0}
+
+    def flaky(*args, **kwargs):
+        calls["n"] += 1
+        e = h2_metric.path_energy(*args, **kwargs)
+        return e * float("nan") if calls["n"] > 2 else e
+
+    monkeypatch.setattr(shooting, "path_energy", flaky)
+    with pytest.raises(shooting.ShootingFailed, match="not finite"):
+        shooting.geodesic_step(t, f, h, np.zeros(4), np.array([1.5, -1.0, 0.8, 1.2]), b.weights, max_iter=max_iter)
+
+
+def test_newton_fallback_finishes_a_step_quasi_newton_did_not(monkeypatch):
+    b = small_basis()
+    t, f, h = b.tensors()
+    a0, a1 = np.zeros(4), np.array([0.5, -0.3, 0.3, 0.4])
+    full = shooting.geodesic_step(t, f, h, a0, a1, b.weights)
+    calls = []
+    real = shooting._Stepper._newton
+    monkeypatch.setattr(shooting._Stepper, "_newton", lambda self, *a: calls.append(1) or real(self, *a))
+    fallback = shooting.geodesic_step(t, f, h, a0, a1, b.weights, max_iter=1)
+    assert calls and np.abs(full - fallback).max() < 1e-7
+
+
+def test_linearly_dependent_fields_still_extrapolate_to_finite_codes():
+    b = small_basis()
+    t, f, h = b.tensors()
+    dup = torch.cat([h, h[:1]])  # field 4 repeats field 0: a singular metric matrix
+    path = shooting.extrapolate(t, f, dup, np.zeros(5), np.array([0.1, -0.05, 0.02, 0.1, 0.0]), b.weights, 3)
+    assert np.isfinite(path).all()
+    ref = shooting.extrapolate(t, f, h, np.zeros(4), np.array([0.1, -0.05, 0.02, 0.1]), b.weights, 3)
+    shapes = latent.decode(t, dup, torch.tensor(path)) - latent.decode(t, h, torch.tensor(ref))
+    assert shapes.abs().max() < 1e-6  # the same meshes, whatever the split between the twin fields
+
+
+@pytest.mark.parametrize("weights", ["body", "face", h2_metric.H2Weights(0.5, 3, -2, 0, 2, 0)])
+def test_jacobian_metric_equals_h2_metric_matrix(weights):
+    b = small_basis(p=5)
+    t, f, h = b.tensors()
+    verts = latent.decode(t, h, torch.tensor([0.4, -0.3, 0.2, 0.5, -0.1], dtype=torch.float64))
+    fast = shooting.jacobian_metric(verts, f, h, weights)
+    ref = h2_metric.metric_matrix(verts, f, h, weights)
+    assert torch.allclose(fast, ref, rtol=1e-10, atol=1e-12 * ref.abs().max())
+
+
+def test_extrapolation_computes_the_metric_matrix_rarely(monkeypatch):
+    b = small_basis()
+    t, f, h = b.tensors()
+    calls = {"n": 0}
+    real = shooting.jacobian_metric
+
+    def counted(*args, **kwargs):
+        calls["n"] += 1
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(shooting, "jacobian_metric", counted)
+    path = shooting.extrapolate(t, f, h, np.zeros(4), np.array([0.1, -0.05, 0.02, 0.1]), b.weights, n_new=12)
+    assert calls["n"] <= 4  # one at the start, refreshed only when the iteration stops contracting
+    steps = latent.latent_path_energy(t, f, h, torch.tensor(path), b.weights, per_step=True).numpy()
+    assert steps.std() < 0.02 * steps.mean()
+
+
+def test_substeps_converge_towards_the_continuous_geodesic_and_keep_the_inputs():
+    b = small_basis()
+    t, f, h = b.tensors()
+    a0, a1 = np.zeros(4), np.array([0.4, -0.25, 0.2, 0.4])
+    paths = {k: shooting.extrapolate(t, f, h, a0, a1, b.weights, n_new=2, substeps=k) for k in (1, 2, 4, 8)}
+    for p in paths.values():
+        assert p.shape == (4, 4) and np.array_equal(p[0], a0) and np.array_equal(p[1], a1)
+    errs = [np.abs(paths[k][2:] - paths[8][2:]).max() for k in (1, 2, 4)]
+    assert errs[0] > 1e-3 and errs[0] > 3 * errs[1] and errs[1] > 3 * errs[2]  # second order in the time step
+    with pytest.raises(InputError, match="substeps"):
+        shooting.extrapolate(t, f, h, a0, a1, b.weights, n_new=2, substeps=0)

@@ -79,3 +79,18 @@ def test_elastic_basis_spans_the_identity_differences():
         assert np.linalg.norm(d - q @ (q.T @ d)) < 1e-6 * np.linalg.norm(d)
     with pytest.raises(InputError, match="unknown groups"):
         latent.build_basis(b.template, b.faces, {"shape": [ids]}, {"shape": 2}, elastic=("pose",))
+
+
+def test_whitened_vertex_geodesic_reaches_the_plain_solvers_energy_in_few_iterations(monkeypatch):
+    v, f = synthetic.blob_mesh(1)
+    c, s = np.cos(np.pi / 3), np.sin(np.pi / 3)
+    bent = v @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T + 0.2 * np.sin(v)
+    w = h2_metric.H2Weights(1, 10, 10, 10, 1, 1)
+    energy = lambda p: float(h2_metric.path_energy(torch.tensor(p), torch.tensor(f), w))  # noqa: E731
+    fast = statistics.vertex_geodesic(v, bent, f, w, steps=5, max_iter=60)
+    monkeypatch.setattr(statistics, "WHITENED_MAX_VERTICES", 0)
+    plain = statistics.vertex_geodesic(v, bent, f, w, steps=5, max_iter=3000)
+    plain_short = statistics.vertex_geodesic(v, bent, f, w, steps=5, max_iter=60)
+    assert np.array_equal(fast[0], v) and np.array_equal(fast[-1], bent)
+    assert energy(fast) <= energy(plain) * (1 + 1e-9) < energy(plain_short)
+    assert np.abs(fast - plain).max() < 1e-4 * np.abs(bent - v).max()
