@@ -1,8 +1,9 @@
 """Elastic vs plain-difference shape bases on the deformed-sphere data (issue: statistics).
 
 Both bases are built from the same training frames (the three families without the
-held-out +-60 frames; then, sparser, without +-60 and +-90) with the same number P of fields: 'plain' from differences of
-consecutive frames, 'elastic' from the steps of parametrised H2 geodesics between them
+held-out +-60 frames; then, sparser, without +-60 and +-90) with the same number P of
+fields: 'plain' from differences of consecutive frames, 'elastic' from the steps of
+parametrised H2 geodesics between them
 (``build_basis(elastic=...)``, the paper's shape-basis construction). Each held-out
 frame is projected onto each basis (L2 least squares, ``project_to_basis``) and the
 reconstruction error is measured: mean vertex error, Chamfer, Hausdorff.

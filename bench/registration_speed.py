@@ -28,10 +28,11 @@ def stage_printer(t0):
     last = {"stage": None}
 
     def callback(event):
-        stage = event.message.split(" it ")[0]
-        if stage != last["stage"]:
+        stage, _, it = event.message.partition(" it ")
+        if stage != last["stage"] or (it.isdigit() and int(it) % 25 == 0):
             last["stage"] = stage
-            print(f"  {time.perf_counter() - t0:7.1f} s  {stage}", flush=True)
+            energy = "" if event.energy is None else f"  objective {event.energy:.6g}"
+            print(f"  {time.perf_counter() - t0:7.1f} s  {event.message}{energy}", flush=True)
 
     return callback
 

@@ -46,7 +46,9 @@ class Level:
 
 
 #: The paper's body schedule (sigma 0.4 -> 0.1 -> 0.025 m on ~1.7 m bodies), relative to height.
-PAPER_BODY_SCHEDULE = (Level(0.4 / 1.7, 1e1, 2), Level(0.1 / 1.7, 1e5, 3), Level(0.025 / 1.7, 1e10, 5))
+#: Iteration caps are ours: at the paper's scale the finest level's vertex error is the same after
+#: 30 and after 200 L-BFGS iterations (3.57 mm, bench/registration_speed.py), each costs ~1.4 s.
+PAPER_BODY_SCHEDULE = (Level(0.4 / 1.7, 1e1, 2, 100), Level(0.1 / 1.7, 1e5, 3, 100), Level(0.025 / 1.7, 1e10, 5, 40))
 
 
 @dataclass
@@ -99,8 +101,7 @@ class Basis:
         if stored is not None and np.array_equal(self.extras.get("template_metric_weights"), w.as_tuple()):
             return stored
         t, f, h = self.tensors()
-        with torch.no_grad():
-            gram = latent_metric(t, f, h, t.new_zeros(self.n_fields), w).numpy()
+        gram = h2_metric.assembled_metric_matrix(t, f, h, w).numpy()
         self.extras["template_metric"], self.extras["template_metric_weights"] = gram, np.array(w.as_tuple())
         return gram
 

@@ -57,7 +57,8 @@ PREALIGN_KEEP = 6           # distinct ones refined at the finer sigma and tried
 PREALIGN_DISTINCT = 20.0    # degrees between two distinct candidates
 PREALIGN_RATIO = 4.0        # candidates whose varifold is within this factor of the best's are tried
 PREALIGN_MAX_ITER = 40
-SCREEN_DIVISOR = 4          # candidate alignments are screened with 1/4 of the first level's iterations
+SCREEN_DIVISOR = 8          # candidate alignments are screened with 1/8 of the first level's iterations
+#                             and a one-step path (the end code decides between alignments)
 PREALIGN_FRACTION = 0.1     # share of the progress bar given to the pre-alignment
 #: L-BFGS stops a level when an iteration lowers the objective by less than this relative amount
 #: (the objective is dominated by weight x varifold; later digits only polish the path's interior)
@@ -580,7 +581,8 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     bounds = lo + (1 - lo) * np.concatenate([[0.0], np.cumsum(budget) / budget.sum()])
     name = lambda k: f"registration level {k + 1}/{len(levels)}"  # noqa: E731
     # screen every candidate alignment with a short first level; only the best one gets the full level
-    screen = levels[0] if len(candidates) == 1 else replace(levels[0], max_iter=max(10, levels[0].max_iter // SCREEN_DIVISOR))
+    screen = levels[0] if len(candidates) == 1 else replace(levels[0], steps=1,
+                                                            max_iter=max(10, levels[0].max_iter // SCREEN_DIVISOR))
     share = len(candidates) / SCREEN_DIVISOR
     mid = bounds[1] if screen is levels[0] else bounds[0] + (bounds[1] - bounds[0]) * share / (1 + share)
     tries = []

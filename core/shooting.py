@@ -21,9 +21,9 @@ exact Jacobian (double backpropagation; P energy gradients per iteration).
 import numpy as np
 import torch
 
-from . import geometry
 from .errors import BareEsaError, InputError
 from .h2_metric import H2Weights, path_energy
+from .h2_metric import assembled_metric_matrix as jacobian_metric
 from .latent import decode
 from .progress import Monitor
 
@@ -54,62 +54,6 @@ def _check_codes(p, **codes):
             raise InputError(f"{name} contains {int((~np.isfinite(c)).sum())} NaN or infinite coefficients")
         out[name] = c
     return out
-
-
-def jacobian_metric(verts, faces, fields, weights, chunk=1024):
-    """Latent metric matrix [G_q(h_i, h_j)] assembled face by face: (N, 3), (P, N, 3) -> (P, P).
-
-    The same matrix as ``h2_metric.metric_matrix`` (to rounding; degenerate faces
-    aside), several times faster at paper scale: the first-order terms are per-face
-    quadratic forms of the two edge variations, so G = sum_f E_f^T M_f E_f with the
-    6 x 6 blocks M_f read off ``path_energy`` on the face soup (one gradient of six
-    probes), plus a0 sum_v A_v <h, k> and a2 sum_v <L h, L k> / (4 A_v) with a sparse
-    cotangent Laplacian. Used as the quasi-Newton Jacobian of the geodesic step.
-    """
-    w = H2Weights.parse(weights)
-    verts = verts.detach()
-    p, n = fields.shape[:2]
-    n_faces = faces.shape[0]
-    gram = fields.new_zeros(p, p)
-    # fields as (N, 3P) columns (axis-major): a face's edge variations are (2, 3, P) -> (6, P)
-    columns = fields.detach().permute(1, 2, 0).reshape(n, 3 * p)
-    if w.a1 or w.b1 or w.c1 or w.d1:
-        soup = verts[faces].reshape(-1, 3)
-        soup_faces = torch.arange(3 * n_faces, device=verts.device).reshape(n_faces, 3)
-        probes = verts.new_zeros(6, n_faces, 3, 3)
-        for k in range(6):  # probe k moves corner 1 + k // 3 along axis k % 3 on every face
-            probes[k, :, 1 + k // 3, k % 3] = 1
-        probes = probes.reshape(6, 3 * n_faces, 3).requires_grad_(True)
-        first = H2Weights(0.0, w.a1, w.b1, w.c1, w.d1, 0.0)
-        with torch.enable_grad():  # path_energy([q - h/2, q + h/2]) = G_q(h, h); its gradient is 2 M h
-            e = path_energy(torch.stack([soup - probes / 2, soup + probes / 2], -3), soup_faces, first).sum()
-            (g,) = torch.autograd.grad(e, probes)
-        blocks = g.reshape(6, n_faces, 3, 3)[:, :, 1:, :].reshape(6, n_faces, 6).transpose(0, 1) / 2
-        blocks = (blocks + blocks.transpose(1, 2)) / 2  # (F, 6, 6)
-        for s in range(0, n_faces, chunk):
-            fc = faces[s:s + chunk]
-            edges = (columns[fc[:, 1:]] - columns[fc[:, :1]]).reshape(-1, 6, p)  # (f, 6, P)
-            gram += edges.reshape(-1, p).T @ torch.bmm(blocks[s:s + chunk], edges).reshape(-1, p)
-    if w.a0 or w.a2:
-        area = geometry.vertex_areas(verts, faces).repeat_interleave(3)  # (3N,) like columns.reshape(3N, P)
-        flat = columns.reshape(3 * n, p)
-        if w.a0:
-            gram += w.a0 * (flat * area[:, None]).T @ flat
-        if w.a2:
-            cot = geometry.corner_cotangents(verts, faces)
-            rows, cols, vals = [], [], []
-            for k in range(3):  # edge (i, j) opposite corner k, weight cot_k
-                i, j, c = faces[:, (k + 1) % 3], faces[:, (k + 2) % 3], cot[:, k]
-                rows += [i, j, i, j]
-                cols += [j, i, i, j]
-                vals += [-c, -c, c, c]
-            lap = torch.sparse_coo_tensor(torch.stack([torch.cat(rows), torch.cat(cols)]), torch.cat(vals),
-                                          (n, n), check_invariants=False).coalesce()
-            lh = torch.sparse.mm(lap, columns).reshape(3 * n, p)
-            inv = torch.where(area > 0, 1 / (4 * torch.where(area > 0, area, torch.ones_like(area))),
-                              torch.zeros_like(area))
-            gram += w.a2 * (lh * inv[:, None]).T @ lh
-    return (gram + gram.T) / 2
 
 
 class _Stepper:
