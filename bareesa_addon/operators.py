@@ -542,6 +542,45 @@ class BAREESA_OT_transfer_motion(SolveOperator, bpy.types.Operator):
 # ------------------------------------------------------------------------------------ statistics
 
 
+#: A random body whose geodesic cannot be shot is retried with twice the steps, then replaced by a
+#: further draw; at most this many draws per requested body.
+DRAWS_PER_BODY = 4
+
+
+def sample_bodies(template, faces, fields, distribution, groups, weights, n, seed, steps, callback=None,
+                  cancel=None):
+    """n random codes: initial velocities drawn from ``distribution``, shot from the template (thread side).
+
+    Like ``core.statistics.sample_codes`` (the same first n draws for a seed), except that a
+    draw whose geodesic does not converge is shot again with 2 x steps and, failing that,
+    replaced by a draw from a second stream of the same seed. -> (codes (n, P), replaced draws).
+    """
+    statistics, shooting = solver.module("statistics"), solver.module("shooting")
+    velocities = list(statistics.sample_velocities(distribution, groups, n, seed))
+    spares = iter(statistics.sample_velocities(distribution, groups, (DRAWS_PER_BODY - 1) * n, [seed, 1]))
+    codes, replaced, error = [], 0, None
+    while len(codes) < n:
+        v = velocities.pop(0) if velocities else next(spares, None)
+        if v is None:
+            raise shooting.ShootingFailed(f"only {len(codes)} of {n} random bodies could be shot from the basis' "
+                                          f"distribution ({error}); raise Shooting steps or fit the "
+                                          "distribution to a collection")
+        for k in (steps, 2 * steps):
+            if callback is not None:
+                progress = solver.module("progress")
+                callback(progress.ProgressEvent("sample", len(codes) / n,
+                                                f"body {len(codes) + 1}/{n}" + (f" ({k} steps)" if k > steps else "")))
+            try:
+                codes.append(shooting.shoot(template, faces, fields, np.zeros_like(v), v, weights, steps=k,
+                                            cancel=cancel)[-1])
+                break
+            except shooting.ShootingFailed as err:
+                error = err
+        else:
+            replaced += 1
+    return np.stack(codes), replaced
+
+
 class BAREESA_OT_generate_random(SolveOperator, bpy.types.Operator):
     """Random bodies (seeded) from the basis' distribution or one fitted to a collection, in a grid"""
 
@@ -583,11 +622,11 @@ class BAREESA_OT_generate_random(SolveOperator, bpy.types.Operator):
                 velocities = statistics.log_map(template, faces, fields, fit_codes, weights,
                                                 callback=scaled_callback(callback, 0.0, 0.5), cancel=cancel)
                 dist = statistics.fit_distribution(velocities, basis.groups, {g: 1 for g in basis.groups}, seed)
-            return statistics.sample_codes(template, faces, fields, dist, basis.groups, weights, n, seed, steps,
-                                           callback=scaled_callback(callback, 0.5 if distribution is None else 0.0,
-                                                                    1.0), cancel=cancel)
+            return sample_bodies(template, faces, fields, dist, basis.groups, weights, n, seed, steps,
+                                 scaled_callback(callback, 0.5 if distribution is None else 0.0, 1.0), cancel)
 
-        def apply(context, codes):
+        def apply(context, result):
+            codes, replaced = result
             cv.check_code(codes, "the random codes")
             coll = new_collection(context, f"{basis.name}_random_seed{seed}")
             extent = basis.template.max(0) - basis.template.min(0)
@@ -599,7 +638,8 @@ class BAREESA_OT_generate_random(SolveOperator, bpy.types.Operator):
                                                       0.0))
                 made.append(obj)
             select_only(context, made)
-            return f"{n} random bodies (seed {seed}) in collection '{coll.name}'"
+            note = f"; {replaced} draw{'s' * (replaced > 1)} could not be shot and were replaced" if replaced else ""
+            return f"{n} random bodies (seed {seed}) in collection '{coll.name}'{note}"
 
         return Task("random bodies", solve, apply)
 

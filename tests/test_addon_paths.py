@@ -284,6 +284,49 @@ def test_generate_random_fitted_to_a_collection_of_registered_objects(scene):
     assert len(bpy.data.collections["tiny_random_seed1"].objects) == 3
 
 
+def failing_shots(monkeypatch, fail):
+    """Make core.shooting.shoot raise ShootingFailed on the calls ``fail(call number, steps)`` says: -> call log."""
+    from core import shooting
+
+    real, calls = shooting.shoot, []
+
+    def shoot(*args, steps=10, **kwargs):
+        calls.append(steps)
+        if fail(len(calls), steps):
+            raise shooting.ShootingFailed("a geodesic step did not converge (test)")
+        return real(*args, steps=steps, **kwargs)
+
+    monkeypatch.setattr(shooting, "shoot", shoot)
+    return calls
+
+
+def test_generate_random_retries_with_more_steps_then_replaces_a_draw_that_cannot_be_shot(scene, monkeypatch):
+    from bareesa_addon import solver
+    from bareesa_addon.operators import sample_bodies
+
+    assert bpy.ops.bareesa.generate_random(count=3, seed=2) == {"FINISHED"}
+    plain = np.stack([key_values(o, NAMES) for o in sorted(bpy.data.collections["tiny_random_seed2"].objects,
+                                                           key=lambda o: o.name)])
+    steps = scene.bareesa.shoot_steps
+    # the first draw fails with the panel's steps and with twice as many; the second only with the panel's
+    calls = failing_shots(monkeypatch, lambda k, s: k in (1, 2, 3))
+    basis, _ = solver.load_basis(scene.bareesa.basis)
+    dist = {k: v for k, v in basis.extras.items() if k.startswith("gmm_")}
+    codes, replaced = sample_bodies(*basis.tensors(), dist, basis.groups, basis.weights, 3, 2, steps)
+    assert replaced == 1 and calls[:4] == [steps, 2 * steps, steps, 2 * steps]
+    assert codes.shape == plain.shape and np.isfinite(codes).all()
+    assert np.allclose(codes[1], plain[2])  # the third draw is kept as drawn; the first is replaced
+    assert not np.isclose(codes, plain[0]).all(axis=1).any()
+
+
+def test_generate_random_reports_and_changes_nothing_when_no_draw_can_be_shot(scene, monkeypatch):
+    failing_shots(monkeypatch, lambda k, s: True)
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="could be shot"):
+        bpy.ops.bareesa.generate_random(count=2, seed=0)
+    assert snapshot() == before
+
+
 def test_generate_random_without_a_distribution_reports_and_changes_nothing(scene, tiny, tmp_path):
     from core.latent import save_basis
 

@@ -23,13 +23,15 @@ def _log(msg):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="python -m bases.build", description=__doc__.splitlines()[0])
-    parser.add_argument("names", nargs="*", default=["deformables", "humanoid"],
-                        choices=["deformables", "humanoid"], help="bases to build (default: all)")
+    parser.add_argument("names", nargs="*", metavar="NAME", help="bases to build: deformables, humanoid (default: all)")
     parser.add_argument("-o", "--output", type=Path, default=BASES_DIR, help="folder to write <name>.npz/.json")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch threads (default 1: deterministic and fastest on a shared machine)")
     parser.add_argument("--full-precision", action="store_true", help="store fields in float64")
     args = parser.parse_args(argv)
+    unknown = set(args.names) - {"deformables", "humanoid"}
+    if unknown:
+        parser.error(f"unknown basis {', '.join(sorted(unknown))}; choose from deformables, humanoid")
 
     import torch
 
@@ -45,7 +47,7 @@ def main(argv=None):
     builders = {n: importlib.import_module(f"bases.build.{n}").build for n in ("deformables", "humanoid")}
     dtype = None if args.full_precision else FIELDS_DTYPE
     total = time.perf_counter()
-    for name in dict.fromkeys(args.names):
+    for name in dict.fromkeys(args.names or ["deformables", "humanoid"]):
         start = time.perf_counter()
         _log(f"building {name}")
         basis, _ = builders[name](log=_log)
