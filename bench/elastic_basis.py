@@ -27,7 +27,7 @@ WIDE_GAP = (-90, -60, 60, 90)  # a sparser training set: the elastic paths must 
 
 def reconstruction(basis, verts, faces):
     """Errors of the L2 projection of a registered mesh onto a basis: vertex, Chamfer, Hausdorff."""
-    code, _ = project_to_basis(basis, verts)
+    code, _ = project_to_basis(basis, verts, ridge=0)
     rec = basis.template + np.tensordot(code, basis.fields, axes=1)
     return [evaluation.vertex_error(rec, verts)["mean"], evaluation.chamfer(rec, verts),
             evaluation.hausdorff(rec, verts)]

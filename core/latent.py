@@ -46,8 +46,10 @@ class Level:
 
 
 #: The paper's body schedule (sigma 0.4 -> 0.1 -> 0.025 m on ~1.7 m bodies), relative to height.
-#: Iteration caps are ours: at the paper's scale the finest level's vertex error is the same after
-#: 30 and after 200 L-BFGS iterations (3.57 mm, bench/registration_speed.py), each costs ~1.4 s.
+#: Iteration caps are ours; a level also ends when it has plateaued (``registration.LEVEL_PLATEAU``):
+#: a smooth synthetic deformation plateaus within ~15 iterations per level, a held-out body pose
+#: needs the caps (with caps of 15 iterations its mean vertex error was 10x worse). Bases store
+#: their schedule: changing these only affects bases built afterwards.
 PAPER_BODY_SCHEDULE = (Level(0.4 / 1.7, 1e1, 2, 100), Level(0.1 / 1.7, 1e5, 3, 100), Level(0.025 / 1.7, 1e10, 5, 40))
 
 
@@ -340,17 +342,46 @@ def build_basis(template, faces, groups, components, weights="body", scale=None,
                  weights=weights, schedule=schedule, scale=scale, name=name, units=units, provenance=prov)
 
 
-def project_to_basis(basis, verts):
-    """Code of a mesh already in template topology: least squares F(alpha) ~ verts.
+#: Relative weight of the latent metric in ``project_to_basis``. Held-out shapes projected by plain
+#: least squares load directions the data barely determines (fields of tiny variance) with large
+#: coefficients, along which the metric bends so fast that geodesic shooting from the code fails;
+#: this ridge keeps them near zero and moves a fit by about a millimetre on the bundled humanoid.
+PROJECTION_RIDGE = 5e-3
 
-    verts (N, 3) -> (alpha (P,), rms vertex residual). Exact for meshes in the
-    span of the basis; otherwise the L2-closest decodable mesh.
+
+def vertex_areas(verts, faces):
+    """Barycentric vertex areas (a third of the adjacent face areas): (N, 3), (F, 3) -> (N,) numpy."""
+    p = np.asarray(verts, dtype=np.float64)[faces]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    out = np.zeros(len(verts))
+    for k in range(3):
+        np.add.at(out, faces[:, k], area / 3)
+    return out
+
+
+def project_to_basis(basis, verts, ridge=PROJECTION_RIDGE):
+    """Code of a mesh already in template topology: F(alpha) ~ verts.
+
+    verts (N, 3) -> (alpha (P,), rms vertex residual). Minimises the area-weighted
+    |F(alpha) - verts|^2 + ridge * s * alpha^T G-bar(0) alpha, s = tr(M) / tr(G-bar(0)) with M
+    the fields' area-weighted Gram matrix (so ``ridge`` is relative and unit-free); ridge=0 is
+    plain least squares, exact for meshes in the span of the basis.
     """
     verts = np.asarray(verts, dtype=np.float64)
     if verts.shape != basis.template.shape:
         raise InputError(f"mesh has {verts.shape[0]} vertices but basis '{basis.name}' has "
                          f"{basis.template.shape[0]}: register it as a scan instead")
+    if not np.isfinite(verts).all():
+        raise InputError("the mesh has NaN or infinite vertex coordinates")
+    if not (np.isfinite(ridge) and ridge >= 0):
+        raise InputError(f"ridge must be a finite number >= 0, got {ridge}")
     a = basis.fields.reshape(basis.n_fields, -1).T.astype(np.float64)
-    alpha, *_ = np.linalg.lstsq(a, (verts - basis.template).ravel(), rcond=None)
+    target = (verts - basis.template).ravel()
+    if ridge > 0:
+        weighted = a * np.repeat(vertex_areas(basis.template, basis.faces), 3)[:, None]
+        gram, metric = weighted.T @ a, basis.template_metric()
+        alpha = np.linalg.solve(gram + ridge * np.trace(gram) / np.trace(metric) * metric, weighted.T @ target)
+    else:
+        alpha, *_ = np.linalg.lstsq(a, target, rcond=None)
     residual = verts - basis.template - (a @ alpha).reshape(verts.shape)
     return alpha, float(np.sqrt((residual**2).sum(1).mean()))

@@ -12,12 +12,13 @@ class SolveDiverged(BareEsaError):
 
 
 def minimize_lbfgs(objective, x0, monitor=None, max_iter=200, progress=(0.0, 1.0), message="",
-                   gtol=1e-10, ftol=1e-12):
+                   gtol=1e-10, ftol=1e-12, plateau=None):
     """Minimise ``objective(x: torch float64 tensor) -> scalar tensor`` from x0 (n,) numpy.
 
     Returns (x (n,) numpy, final value, number of iterations). The monitor's
     cancel token is checked at every evaluation; progress is reported as
-    iterations advance within the ``progress`` fraction range.
+    iterations advance within the ``progress`` fraction range. plateau (window k, rtol r):
+    also stop once the objective fell by less than r * |objective| over the last k iterations.
     """
     x0 = np.ascontiguousarray(x0, dtype=np.float64)
     state = {"it": 0, "value": None}
@@ -35,12 +36,19 @@ def minimize_lbfgs(objective, x0, monitor=None, max_iter=200, progress=(0.0, 1.0
         state["value"] = v
         return v, g
 
-    def callback(xk):
+    history = []
+
+    def callback(intermediate_result):
         state["it"] += 1
         if monitor is not None:
             monitor.check()
             lo, hi = progress
             monitor.report(lo + (hi - lo) * state["it"] / max_iter, f"{message} it {state['it']}", state["value"])
+        if plateau is not None:
+            window, rtol = plateau
+            history.append(float(intermediate_result.fun))
+            if len(history) > window and history[-1 - window] - history[-1] < rtol * abs(history[-1]):
+                raise StopIteration
 
     if x0.size == 0:
         return x0, float(objective(torch.from_numpy(x0))), 0

@@ -23,8 +23,9 @@ cells, each cell keeping its area-weighted centroid and orientation tensor sum a
 exact for the binet kernel up to the binning of positions); the best few are refined by
 L-BFGS over (axis-angle, translation, log-scale) at a coarse then a finer sigma. A deformed
 scan of a nearly symmetric template can match a flipped template better than the right one,
-so ``register`` runs its first level from each distinct candidate whose varifold is within
-PREALIGN_RATIO of the best and keeps the lowest objective (the latent fit decides). The binet
+so ``register`` runs a short first level from each distinct candidate whose varifold is within
+PREALIGN_RATIO of the best and keeps the one whose result fits best at the second level's sigma
+(``screen_score``: at the first level's sigma a body is nearly front/back symmetric). The binet
 kernel ignores normal orientation, so inconsistently oriented scans align as well.
 
 Frames: registration happens in the template frame; ``RegistrationResult.vertices`` are mapped
@@ -47,7 +48,7 @@ from .latent import Level, decode, time_whitening, whitening
 from .mesh import validate_mesh
 from .optimize import minimize_lbfgs
 from .progress import Monitor
-from .varifold import VarifoldLoss
+from .varifold import VarifoldLoss, default_cutoff
 
 #: Pre-alignment sigmas (scoring/refinement, final refinement), in units of the RMS radius.
 PREALIGN_SIGMAS = (0.5, 0.25)
@@ -59,12 +60,23 @@ PREALIGN_RATIO = 4.0        # candidates whose varifold is within this factor of
 PREALIGN_MAX_ITER = 40
 SCREEN_DIVISOR = 8          # candidate alignments are screened with 1/8 of the first level's iterations
 #                             and a one-step path (the end code decides between alignments)
+SCREEN_CELL = 0.25          # the screened alignments are ranked at the second level's sigma, on cells of
+#                             this x sigma (both surfaces): at the first level's sigma a body is nearly
+#                             front/back symmetric, and its coarse binning (BIN_CELL) cannot tell them apart
 PREALIGN_FRACTION = 0.1     # share of the progress bar given to the pre-alignment
 #: L-BFGS stops a level when an iteration lowers the objective by less than this relative amount
 #: (the objective is dominated by weight x varifold; later digits only polish the path's interior)
 LEVEL_FTOL = 1e-9
+#: ... and when it fell by less than LEVEL_PLATEAU[1] (relative) over the last LEVEL_PLATEAU[0]
+#: iterations: easy problems plateau within ~15 iterations, a body in a new pose needs ~100
+LEVEL_PLATEAU = (5, 1e-3)
 BIN_CELL = 0.4              # cell size of the binned varifold, in units of sigma
 BIN_GAIN = 0.05             # "auto" bins a level when that leaves at most this share of face pairs
+#: Unbinned levels: truncation tolerance of the varifold kernel (cutoff sigma sqrt(log(1/tol)),
+#: relative error of d^2 ~1e-6 at paper scale) and cell size, in units of sigma, of the scan's
+#: ``binned_measure`` (None: the scan's faces are used as they are)
+FINE_TOL = 1e-4
+SCAN_CELL = 0.5
 
 
 # --------------------------------------------------------------------------- similarity
@@ -536,7 +548,9 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     scan_face_weights (G,) >= 0 (0 ignores a face, e.g. a floor); metric: H2 weights (default
     the basis'); kernel, backend: of the varifold (``core.varifold``); binning: "auto" evaluates
     a level's varifold on cell sums (``BinnedVarifoldLoss``) when sigma is so large that this
-    cuts the face pairs 20-fold, True always, False never; refine_transform: optimise the
+    cuts the face pairs 20-fold, True always, False never (an unbinned level still sums the scan
+    alone over cells of SCAN_CELL x sigma when that leaves fewer points, ``VarifoldLoss(target_cell=)``,
+    and truncates the kernel at FINE_TOL); refine_transform: optimise the
     similarity jointly with the path (default: as prealign); init_code (P,) starts from the
     straight path 0 -> init_code; dtype: precision of the objective (the optimiser is float64).
     Raises MeshError/InputError on bad input, SolveCancelled when cancelled (no partial result).
@@ -590,7 +604,12 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
         span = (mid - bounds[0]) / len(candidates)
         tries.append(problem.solve_level(screen, path, transform, (bounds[0] + j * span, bounds[0] + (j + 1) * span),
                                          name(0) + (f" (alignment {j + 1}/{len(candidates)})" if j else "")))
-    best = min(range(len(tries)), key=lambda j: tries[j][2]["objective"])
+    if len(tries) > 1:
+        judge = levels[min(1, len(levels) - 1)]
+        scores = [problem.screen_score(judge, p, t, r["energy"]) for p, t, r in tries]
+        best = int(np.argmin(scores))
+    else:
+        best = 0
     (path, transform, first), initial = tries[best], candidates[best][1]
     if screen is not levels[0]:
         path, transform, first = problem.solve_level(levels[0], path, transform, (mid, bounds[1]), name(0))
@@ -653,6 +672,24 @@ class _Problem:
         self.scale, self.n_fields = basis.scale, basis.n_fields
         self.fields_np = basis.fields
 
+    def screen_score(self, level, path, transform, energy):
+        """weight * Gamma + energy of a screened path at ``level``'s sigma and weight, Gamma on a
+        binning of both surfaces with cells of SCREEN_CELL x sigma.
+
+        The first level's objective bins with cells of BIN_CELL x sigma; its error (a difference of
+        large kernel sums) depends on how each alignment falls on the cells, and at its sigma a
+        flipped body fits about as well: a finer sigma and finer cells rank alignments reliably.
+        path (T+1, P), transform: a ``solve_level`` result; energy: its path energy -> float.
+        """
+        sigma = level.sigma * self.scale
+        target = torch.as_tensor(transform.apply(self.scan), dtype=self.dtype, device=self.device)
+        code = torch.as_tensor(path[-1], dtype=self.dtype, device=self.device)
+        with torch.no_grad():
+            final = decode(self.template, self.fields, code)
+            loss = BinnedVarifoldLoss(final, self.faces, target, self.scan_faces, sigma, self.kernel,
+                                      self.scan_weights, cell=SCREEN_CELL * sigma)
+            return level.weight * float(loss(final, self.faces)) + energy
+
     def solve_level(self, level, path, transform, progress, message):
         """Minimise one level from path (T0+1, P) and the alignment -> (path (T+1, P), alignment, report)."""
         t0 = time.perf_counter()
@@ -672,7 +709,8 @@ class _Problem:
         binned = loss is not None
         if not binned:
             loss = VarifoldLoss(target, self.scan_faces, sigma, kernel=self.kernel, backend=self.backend,
-                                target_weights=self.scan_weights)
+                                target_weights=self.scan_weights, cutoff=default_cutoff(sigma, FINE_TOL),
+                                target_cell=None if SCAN_CELL is None else SCAN_CELL * sigma)
         if self.marks is not None:
             lm_pts = torch.as_tensor(transform.apply(self.marks[1]), dtype=dtype, device=device)
         terms = {}
@@ -704,7 +742,7 @@ class _Problem:
         units_t = torch.as_tensor(units, dtype=dtype, device=device)
         x0 = np.concatenate([variables.variables(resample_in_time(path, steps)).ravel(), np.zeros(self.n_extra)])
         x, value, nit = minimize_lbfgs(objective, x0, self.monitor, max_iter=level.max_iter,
-                                       progress=progress, message=message, ftol=LEVEL_FTOL)
+                                       progress=progress, message=message, ftol=LEVEL_FTOL, plateau=LEVEL_PLATEAU)
         with torch.no_grad():
             objective(torch.from_numpy(x))
         path = variables.path(torch.from_numpy(x[:steps * p_dim].reshape(steps, p_dim))).numpy()

@@ -175,7 +175,7 @@ class _Stepper:
                 self.inv_jac += np.outer(d - hy, gd @ self.inv_jac) / denom
         raise _Diverged(best[1])
 
-    def _newton(self, a0, a1, x, c, max_iter=30):
+    def _newton(self, a0, a1, x, c, max_iter=8):
         """Damped Newton with the exact Jacobian (the fallback for strongly curved steps) -> (alpha^2, next c)."""
         self.refresh_jacobian((a1 + x) / 2)
         chord = self.inv_jac

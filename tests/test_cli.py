@@ -124,7 +124,8 @@ def test_build_basis_then_distance_and_interpolate_on_registered_meshes(capsys, 
     from core.mesh import load_mesh
     first, last = load_mesh(frames[0])[0], load_mesh(frames[-1])[0]
     assert np.abs(first - v).max() < 1e-8
-    assert np.abs(last - load_mesh(end)[0]).max() < 1e-8
+    # the end code is the ridge-regularised projection (core.latent.PROJECTION_RIDGE): close, not exact
+    assert np.abs(last - load_mesh(end)[0]).max() < 5e-3 * np.ptp(v, axis=0).max()
     assert np.allclose(codes[-1], project_to_basis(basis, load_mesh(end)[0])[0])
 
 
@@ -233,3 +234,27 @@ def test_register_command_writes_registered_mesh_and_json(capsys, tmp_path):
     rc, _, err = run(capsys, "register", tmp_path / "scan.ply", "--basis", tmp_path / "s.npz",
                      "-o", tmp_path / "r2.ply", "--landmarks", tmp_path / "bad.csv")
     assert rc == 2 and "landmark 1" in err and not (tmp_path / "r2.ply").exists()
+
+
+def test_demo_registers_two_simulated_scans_and_writes_an_evenly_paced_geodesic(capsys, tmp_path):
+    import re
+
+    from core.latent import Level, save_basis
+    from core.mesh import load_mesh
+
+    basis, _ = synthetic.smooth_sphere_basis(subdivisions=2, n_fields=6, seed=0)
+    basis.schedule = (Level(0.15, 1e3, 2, 40),)
+    save_basis(tmp_path / "s.npz", basis)
+    rc, out, err = run(capsys, "demo", "--basis", tmp_path / "s.npz", "--steps", "4", "-o", tmp_path / "demo")
+    assert rc == 0, err
+    for name in ("scan_A", "scan_B"):
+        scan_v, scan_f = load_mesh(tmp_path / "demo" / f"{name}.ply")
+        reg_v, reg_f = load_mesh(tmp_path / "demo" / f"{name}_registered.ply")
+        assert np.array_equal(reg_f, basis.faces) and not np.array_equal(scan_f.shape, basis.faces.shape)
+        assert chamfer(reg_v, scan_v) < 0.1 * np.ptp(scan_v, axis=0).max()  # overlays the scan (which has holes)
+    errors = [float(e) for e in re.findall(r"vertex error ([0-9.e+-]+)", out)]
+    assert len(errors) == 2 and max(errors) < 0.1  # unit sphere, one coarse level: under 10 % of the radius
+    frames = sorted((tmp_path / "demo" / "geodesic").glob("frame_*.ply"))
+    assert len(frames) == 4 and np.load(tmp_path / "demo" / "geodesic" / "codes.npy").shape == (4, 6)
+    rc, _, err = run(capsys, "demo", "--basis", tmp_path / "s.npz", "--steps", "1", "-o", tmp_path / "d2")
+    assert rc == 2 and "--steps" in err and not (tmp_path / "d2").exists()

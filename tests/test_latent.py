@@ -153,3 +153,32 @@ def test_template_metric_is_cached_saved_and_recomputed_for_other_weights(tmp_pa
         "template_metric"]
     other = loaded.template_metric((2, 1, 1, 1, 1, 5))
     assert not np.allclose(other, g)
+
+
+def test_projection_ridge_keeps_rough_tiny_directions_small_and_the_fit_close():
+    from dataclasses import replace
+
+    from core.latent import project_to_basis
+
+    basis, _ = synthetic.smooth_sphere_basis(subdivisions=2, n_fields=6, seed=0)
+    # a seventh field of tiny, rough displacements: small in L2, large in the H2 metric (like the
+    # low-variance tail of a PCA basis); least squares uses it to fit noise
+    rng = np.random.default_rng(1)
+    rough = 1e-3 * rng.normal(size=basis.fields[0].shape)
+    basis = replace(basis, fields=np.concatenate([basis.fields, rough[None]]), groups={"all": (0, 7)}, extras={})
+    alpha = np.array([0.5, -0.3, 0.2, 0.1, -0.4, 0.3, 0.0])
+    exact = basis.template + np.tensordot(alpha, basis.fields, axes=1)
+    noisy = exact + 2e-3 * rng.normal(size=exact.shape) + 0.5 * rough
+    plain, rms_plain = project_to_basis(basis, noisy, ridge=0)
+    ridged, rms_ridged = project_to_basis(basis, noisy, ridge=0.05)
+    default, rms_default = project_to_basis(basis, noisy)
+    assert abs(plain[6]) > 0.3 and abs(ridged[6]) < 0.5 * abs(plain[6])  # the rough field is damped
+    assert abs(ridged[6]) < abs(default[6]) < abs(plain[6])  # the default ridge damps less
+    assert np.allclose(ridged[:6], alpha[:6], atol=0.05) and np.allclose(default[:6], alpha[:6], atol=0.01)
+    assert rms_default < rms_plain + 1e-3 and rms_ridged < 3 * rms_plain  # the default barely changes the fit
+    code, rms = project_to_basis(basis, exact, ridge=0)
+    assert rms < 1e-9 and np.allclose(code, alpha)
+    with pytest.raises(InputError, match="ridge"):
+        project_to_basis(basis, exact, ridge=-1.0)
+    with pytest.raises(InputError, match="NaN"):
+        project_to_basis(basis, np.full_like(exact, np.nan))

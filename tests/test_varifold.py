@@ -203,3 +203,75 @@ def test_bad_meshes_raise_input_error(monkeypatch):
     with pytest.raises(InputError, match="pykeops"):
         varifold_distance(v, f, v, f, SIGMA, backend="keops")
     assert choose_backend(14000, 55000, 1.0, 2.0, "cpu") == "dense"
+
+
+def _cell_centroids(c, a, cell):
+    """Each face's centre moved to the area-weighted centroid of its cubic cell (F, 3)."""
+    _, groups = torch.unique(torch.floor(c / cell).long(), dim=0, return_inverse=True)
+    k = int(groups.max()) + 1
+    x = c.new_zeros(k, 3).index_add_(0, groups, a[:, None] * c) / a.new_zeros(k).index_add_(0, groups, a)[:, None]
+    return x[groups]
+
+
+BIN_SIGMA = 0.2      # faces of mesh(4) are ~sigma/2 wide: cells of sigma/2 hold a few faces
+
+
+@pytest.mark.parametrize("kernel", ["binet", "linear", "constant"])
+def test_binned_measure_is_exact_for_the_orientation_kernel(kernel):
+    # pseudo-faces reproduce <probe, target> exactly once each face sits at its cell's centroid
+    c, n, a = V.varifold_measure(*mesh(4, 0))
+    cell = 0.5 * BIN_SIGMA
+    xb, nb, ab = V.binned_measure(c, n, a, cell, kernel)
+    assert xb.shape[0] < 0.7 * c.shape[0] and torch.allclose(nb.norm(dim=1), torch.ones_like(ab))
+    if kernel != "linear":                   # binet: sum of eigenvalues = trace = sum of areas
+        assert float(ab.sum()) == pytest.approx(float(a.sum()), rel=1e-12)
+    p, m = mesh(3, 1, True)
+    probe = V.varifold_measure(p, m)
+    moved = (_cell_centroids(c, a, cell), n, a)
+    for sigma in (BIN_SIGMA, 3 * BIN_SIGMA):
+        ref = V.varifold_inner(*probe, *moved, sigma, kernel=kernel)
+        out = V.varifold_inner(*probe, xb, nb, ab, sigma, kernel=kernel)
+        assert torch.isclose(out, ref, rtol=1e-10, atol=0)
+        (g_ref,), (g_out,) = torch.autograd.grad(ref, p, retain_graph=True), torch.autograd.grad(out, p, retain_graph=True)
+        assert float((g_out - g_ref).norm() / g_ref.norm()) < 1e-10
+
+
+@pytest.mark.parametrize("backend", ["dense", "truncated"])
+def test_binned_target_close_to_exact_loss(backend, use_backend):
+    # cells of sigma/2: d^2 of two different blobs within 2%, its gradient within 3% (relative);
+    # the error is that of moving each face to its cell's centroid, O((cell/sigma)^2)
+    name = use_backend(backend)
+    v, f = mesh(3, 0, True)
+    w, g = mesh(4, 1)
+    exact = VarifoldLoss(w, g, BIN_SIGMA, backend=name)
+    binned = VarifoldLoss(w, g, BIN_SIGMA, backend=name, target_cell=BIN_SIGMA / 2)
+    assert binned.target_points < 0.6 * g.shape[0]
+    d0, d1 = exact(v, f), binned(v, f)
+    (g0,), (g1,) = torch.autograd.grad(d0, v), torch.autograd.grad(d1, v)
+    assert float(abs(d1 - d0).detach() / d0.detach()) < 0.02
+    assert float((g1 - g0).norm() / g0.norm()) < 0.03
+    coarse = VarifoldLoss(w, g, BIN_SIGMA, backend=name, target_cell=BIN_SIGMA)   # larger cells, larger error
+    gc, = torch.autograd.grad(coarse(v, f), v)
+    assert float((gc - g0).norm()) > 2 * float((g1 - g0).norm())
+
+
+def test_binned_target_gradient_matches_finite_differences():
+    v, f = blob_mesh(1, seed=0)
+    w, g = blob_mesh(2, seed=1)
+    v = torch.tensor(v, dtype=DT, requires_grad=True)
+    loss = VarifoldLoss(torch.tensor(w, dtype=DT), torch.tensor(g), 0.5, backend="dense", target_cell=0.4)
+    assert loss.target_points < g.shape[0]
+    f = torch.tensor(f)
+    assert torch.autograd.gradcheck(lambda a: loss(a, f), (v,), eps=1e-6, atol=1e-7, rtol=1e-5, fast_mode=True)
+
+
+def test_binned_target_options():
+    w, g = mesh(2, 1)
+    few = VarifoldLoss(w, g, SIGMA, target_cell=1e-6)          # no cell holds 2 faces: faces kept
+    assert few.target_points == g.shape[0]
+    few = VarifoldLoss(w, g, SIGMA, target_cell=0.25)   # a few cells hold several faces: not worth it
+    assert few.target_points == g.shape[0] > V.binned_measure(*V.varifold_measure(w, g), 0.25)[0].shape[0]
+    with pytest.raises(InputError, match="target_cell"):
+        VarifoldLoss(w, g, SIGMA, target_cell=0.0)
+    with pytest.raises(InputError, match="require grad"):
+        VarifoldLoss(w.clone().requires_grad_(True), g, SIGMA, target_cell=SIGMA)

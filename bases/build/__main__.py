@@ -28,6 +28,8 @@ def main(argv=None):
     parser.add_argument("--threads", type=int, default=1,
                         help="torch threads (default 1: deterministic and fastest on a shared machine)")
     parser.add_argument("--full-precision", action="store_true", help="store fields in float64")
+    parser.add_argument("--keep-full", type=Path, metavar="DIR",
+                        help="also write float64 copies to DIR (to compare accuracy with the shipped precision)")
     args = parser.parse_args(argv)
     unknown = set(args.names) - {"deformables", "humanoid"}
     if unknown:
@@ -54,6 +56,9 @@ def main(argv=None):
         basis.provenance["fields_dtype"] = np.dtype(dtype or np.float64).name
         path = args.output / f"{name}.npz"
         save_basis(path, basis, fields_dtype=dtype)
+        if args.keep_full is not None and dtype is not None:
+            args.keep_full.mkdir(parents=True, exist_ok=True)
+            save_basis(args.keep_full / f"{name}.npz", basis)
         _log(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB, {basis.n_fields} fields, "
              f"{time.perf_counter() - start:.0f} s)")
         _log(json.dumps({g: list(r) for g, r in basis.groups.items()}))
