@@ -58,16 +58,20 @@ def ensure_addon():
 
 
 def pick_basis(requested):
-    """The requested basis (bundled name or .npz path), else the first bundled one: -> reference."""
+    """The requested basis (bundled name or .npz path): -> reference. Only the default, ``humanoid``,
+    falls back to ``deformables`` (a checkout whose humanoid was not built); any other name that
+    does not resolve raises InputError."""
     latent, errors = solver.module("latent"), solver.module("errors")
-    for name in dict.fromkeys((requested, "humanoid", "deformables")):
+    candidates = (requested, "deformables") if requested == "humanoid" else (requested,)
+    for name in candidates:
         try:
             latent.resolve_basis_path(name)
         except errors.InputError as err:
+            if name == candidates[-1]:
+                raise
             log(f"{err}")
             continue
         return name
-    raise errors.InputError("no basis found: pass --basis with a path to an .npz basis")
 
 
 def sample_code(basis, rng, scale=1.0):
@@ -411,3 +415,30 @@ def main(argv=None):
     print(f"demo written: {result['blend']} and {result['png']}")
     print("times (s): " + ", ".join(f"{k} {v:.1f}" for k, v in result["times"].items()))
     return 0
+
+
+def console_main(argv=None):
+    """Entry point of ``bareesa-demo`` (Python with the bpy module): ``main``, then exit at once.
+
+    After a GPU render the bpy module (4.5) can hang at interpreter exit, in a C++ static
+    destructor that waits for its GPU worker thread; by then everything is written and flushed,
+    so the process ends without running those destructors. Inside the Blender binary
+    (``bpy.app.binary_path`` set) Blender exits as usual.
+    """
+    import os
+    import sys
+    import traceback
+
+    try:
+        code = main(argv)
+    except solver.module("errors").BareEsaError as err:
+        print(f"bareesa-demo: error: {err}", file=sys.stderr)
+        code = 2
+    except Exception:  # noqa: BLE001  (reported, then the same fast exit)
+        traceback.print_exc()
+        code = 1
+    sys.stdout.flush()
+    sys.stderr.flush()
+    if bpy.app.binary_path:
+        return code
+    os._exit(code or 0)

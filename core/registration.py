@@ -24,8 +24,9 @@ exact for the binet kernel up to the binning of positions); the best few are ref
 L-BFGS over (axis-angle, translation, log-scale) at a coarse then a finer sigma. A deformed
 scan of a nearly symmetric template can match a flipped template better than the right one,
 so ``register`` runs a short first level from each distinct candidate whose varifold is within
-PREALIGN_RATIO of the best and keeps the one whose result fits best at the second level's sigma
-(``screen_score``: at the first level's sigma a body is nearly front/back symmetric). The binet
+PREALIGN_RATIO of the best, ranks them by ``screen_score`` and, when the best two are within
+SCREEN_TIE, runs a short second level from both and keeps the one that fits better at the second
+level's sigma (at the first level's sigma a body is nearly front/back symmetric). The binet
 kernel ignores normal orientation, so inconsistently oriented scans align as well.
 
 Frames: registration happens in the template frame; ``RegistrationResult.vertices`` are mapped
@@ -60,9 +61,11 @@ PREALIGN_RATIO = 4.0        # candidates whose varifold is within this factor of
 PREALIGN_MAX_ITER = 40
 SCREEN_DIVISOR = 8          # candidate alignments are screened with 1/8 of the first level's iterations
 #                             and a one-step path (the end code decides between alignments)
-SCREEN_CELL = 0.25          # the screened alignments are ranked at the second level's sigma, on cells of
-#                             this x sigma (both surfaces): at the first level's sigma a body is nearly
-#                             front/back symmetric, and its coarse binning (BIN_CELL) cannot tell them apart
+SCREEN_CELL = 0.25          # screened alignments are compared on cells of this x sigma (both surfaces):
+#                             the level's own coarse binning (BIN_CELL) errs differently per alignment
+SCREEN_FINALISTS = 2        # the best screened alignments get a short second level, which decides: at the
+SCREEN_SECOND_ITER = 5      # first level's sigma a body is nearly front/back symmetric...
+SCREEN_TIE = 1.5            # ... when the second best scored within this factor of the best
 PREALIGN_FRACTION = 0.1     # share of the progress bar given to the pre-alignment
 #: L-BFGS stops a level when an iteration lowers the objective by less than this relative amount
 #: (the objective is dominated by weight x varifold; later digits only polish the path's interior)
@@ -604,14 +607,23 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
         span = (mid - bounds[0]) / len(candidates)
         tries.append(problem.solve_level(screen, path, transform, (bounds[0] + j * span, bounds[0] + (j + 1) * span),
                                          name(0) + (f" (alignment {j + 1}/{len(candidates)})" if j else "")))
+    best, resume = 0, None
     if len(tries) > 1:
-        judge = levels[min(1, len(levels) - 1)]
-        scores = [problem.screen_score(judge, p, t, r["energy"]) for p, t, r in tries]
-        best = int(np.argmin(scores))
-    else:
-        best = 0
+        # the screened objectives ranked on fine cells; the finer second level decides between the best
+        scores = [problem.screen_score(levels[0], p, t, r["energy"]) for p, t, r in tries]
+        order = np.argsort(scores)
+        best = int(order[0])
+        finalists = [int(j) for j in order[:SCREEN_FINALISTS] if scores[j] <= SCREEN_TIE * scores[best]]
+        if len(levels) > 1 and len(finalists) > 1:
+            short = replace(levels[1], max_iter=SCREEN_SECOND_ITER)
+            second = [problem.solve_level(short, tries[j][0], tries[j][1], (mid, mid), name(1) + " (screening)")
+                      for j in finalists]
+            k = int(np.argmin([problem.screen_score(levels[1], p, t, r["energy"]) for p, t, r in second]))
+            best, resume = finalists[k], second[k]  # the second level goes on from the winner's short one
     (path, transform, first), initial = tries[best], candidates[best][1]
-    if screen is not levels[0]:
+    if resume is not None:
+        path, transform = resume[0], resume[1]
+    elif screen is not levels[0]:
         path, transform, first = problem.solve_level(levels[0], path, transform, (mid, bounds[1]), name(0))
     report = [first]
     monitor.report(bounds[1], f"{name(0)} done", first["objective"])
@@ -673,12 +685,12 @@ class _Problem:
         self.fields_np = basis.fields
 
     def screen_score(self, level, path, transform, energy):
-        """weight * Gamma + energy of a screened path at ``level``'s sigma and weight, Gamma on a
+        """weight * Gamma + energy of a solved path at ``level``'s sigma and weight, Gamma on a
         binning of both surfaces with cells of SCREEN_CELL x sigma.
 
-        The first level's objective bins with cells of BIN_CELL x sigma; its error (a difference of
-        large kernel sums) depends on how each alignment falls on the cells, and at its sigma a
-        flipped body fits about as well: a finer sigma and finer cells rank alignments reliably.
+        A level's objective bins with cells of BIN_CELL x sigma; its error (a difference of large
+        kernel sums) depends on how each alignment falls on the cells, enough to rank a wrong
+        alignment first: finer cells make the objective comparable across alignments.
         path (T+1, P), transform: a ``solve_level`` result; energy: its path energy -> float.
         """
         sigma = level.sigma * self.scale

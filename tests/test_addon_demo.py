@@ -53,3 +53,14 @@ def test_contact_sheet_scene_is_removed_after_rendering(tiny, tmp_path):
     w, h = png_size(render_sheet(rows, tmp_path / "row.png", width=300))
     assert w == 300 and 50 < h < 300
     assert (len(bpy.data.objects), len(bpy.data.meshes), len(bpy.data.curves), len(bpy.data.scenes)) == counts
+
+
+def test_demo_basis_choice_rejects_an_unknown_name_and_keeps_the_default():
+    import pytest
+
+    from bareesa_addon.demo import pick_basis
+    from core.errors import InputError
+
+    with pytest.raises(InputError, match="no bundled basis named 'nosuch'"):
+        pick_basis("nosuch")
+    assert pick_basis("humanoid") == "humanoid" and pick_basis("deformables") == "deformables"

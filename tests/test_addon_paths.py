@@ -12,6 +12,10 @@ NAMES = ["pose_000", "pose_001", "shape_000", "shape_001"]
 A = np.array([0.2, -0.3, 0.4, 0.1])
 B = np.array([-0.5, 0.6, 0.1, 0.7])
 
+#: codes of template-topology frames come from the ridge-regularised projection (shrinks them by
+#: up to ~0.5 %, core.latent.PROJECTION_RIDGE): compare to this absolute tolerance
+RIDGE_ATOL = 5e-3
+
 
 def registered(name, code, location=(0.0, 0.0, 0.0)):
     """A template object with a code, as register_scan leaves it."""
@@ -217,8 +221,9 @@ def test_transfer_motion_from_any_animated_mesh_evaluated_per_frame(scene, tiny)
     scene.bareesa.frame_start, scene.bareesa.frame_end = 1, 4
     assert bpy.ops.bareesa.transfer_motion(source="cache_like", target="target") == {"FINISHED"}
     frames, codes = keyed(target)
-    assert np.allclose(codes[0], np.r_[POSES[0], IDENTITY], atol=1e-5)
-    assert np.allclose(codes[-1], np.r_[POSES[3], IDENTITY], atol=1e-5)
+    # source frames are projected with core.latent.PROJECTION_RIDGE: within its small shrinkage
+    assert np.allclose(codes[0], np.r_[POSES[0], IDENTITY], atol=RIDGE_ATOL)
+    assert np.allclose(codes[-1], np.r_[POSES[3], IDENTITY], atol=RIDGE_ATOL)
     assert np.allclose(codes[:, 2:], IDENTITY, atol=1e-6)
 
 
@@ -236,7 +241,7 @@ def test_transfer_motion_from_an_ordered_collection_of_frame_objects(scene, tiny
     assert bpy.ops.bareesa.transfer_motion(source_collection="frames", target="target") == {"FINISHED"}
     frames, codes = keyed(bpy.data.objects["target"])
     assert list(frames) == [20, 21, 22, 23]
-    assert np.allclose(codes, expected_motion(), atol=1e-5)
+    assert np.allclose(codes, expected_motion(), atol=RIDGE_ATOL)  # ridge-projected frames
 
 
 def test_transfer_motion_refuses_unknown_identity_group(scene):
@@ -442,5 +447,5 @@ def test_transfer_motion_from_an_alembic_mesh_cache(scene, tiny, tmp_path):
     assert bpy.ops.bareesa.transfer_motion(source=cache.name, target="target") == {"FINISHED"}
     frames, codes = keyed(bpy.data.objects["target"])
     assert list(frames) == [1, 2, 3, 4]
-    assert np.allclose(codes[0], np.r_[POSES[1], IDENTITY], atol=1e-4)
-    assert np.allclose(codes[-1], np.r_[POSES[2], IDENTITY], atol=1e-4)
+    assert np.allclose(codes[0], np.r_[POSES[1], IDENTITY], atol=RIDGE_ATOL)  # ridge-projected frames
+    assert np.allclose(codes[-1], np.r_[POSES[2], IDENTITY], atol=RIDGE_ATOL)

@@ -11,8 +11,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bareesa_addon.demo import main  # noqa: E402
+from bareesa_addon.demo import console_main  # noqa: E402
 
 if __name__ == "__main__":
     argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
-    sys.exit(main(argv))
+    sys.exit(console_main(argv))

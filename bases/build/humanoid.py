@@ -583,7 +583,7 @@ def build(pose_components=POSE_COMPONENTS, shape_components=SHAPE_COMPONENTS, lo
         log("humanoid: fitting the distribution of initial velocities")
         frames = np.concatenate([s[1:] for s in data["sequences"].values()])
         frames = np.concatenate([frames, data["train_rest"]])
-        basis.extras.update(fit_basis_distribution(basis, frames, {"pose": 6, "shape": 3}, max_samples=160,
+        basis.extras.update(fit_basis_distribution(basis, frames, {"pose": 4, "shape": 2}, max_samples=40,
                                                    steps=3, max_iter=20))
     basis.provenance["build_seconds"] = round(time.perf_counter() - start, 1)
     return basis, data
