@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from . import h2_metric
+from . import geometry, h2_metric
 from .errors import InputError
 from .h2_metric import H2Weights
 
@@ -349,16 +349,6 @@ def build_basis(template, faces, groups, components, weights="body", scale=None,
 PROJECTION_RIDGE = 5e-3
 
 
-def vertex_areas(verts, faces):
-    """Barycentric vertex areas (a third of the adjacent face areas): (N, 3), (F, 3) -> (N,) numpy."""
-    p = np.asarray(verts, dtype=np.float64)[faces]
-    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-    out = np.zeros(len(verts))
-    for k in range(3):
-        np.add.at(out, faces[:, k], area / 3)
-    return out
-
-
 def project_to_basis(basis, verts, ridge=PROJECTION_RIDGE):
     """Code of a mesh already in template topology: F(alpha) ~ verts.
 
@@ -378,7 +368,8 @@ def project_to_basis(basis, verts, ridge=PROJECTION_RIDGE):
     a = basis.fields.reshape(basis.n_fields, -1).T.astype(np.float64)
     target = (verts - basis.template).ravel()
     if ridge > 0:
-        weighted = a * np.repeat(vertex_areas(basis.template, basis.faces), 3)[:, None]
+        areas = geometry.vertex_areas(torch.from_numpy(basis.template), torch.from_numpy(basis.faces)).numpy()
+        weighted = a * np.repeat(areas, 3)[:, None]
         gram, metric = weighted.T @ a, basis.template_metric()
         alpha = np.linalg.solve(gram + ridge * np.trace(gram) / np.trace(metric) * metric, weighted.T @ target)
     else:
