@@ -74,18 +74,13 @@ def pick_basis(requested):
         return name
 
 
-def sample_code(basis, rng, scale=1.0):
-    """A plausible code: from the basis' stored distribution when it has one, else small Gaussian."""
-    code = np.zeros(basis.n_fields)
-    for group, (a, b) in basis.groups.items():
-        means = basis.extras.get(f"gmm_{group}_means")
-        covs = basis.extras.get(f"gmm_{group}_covariances")
-        weights = basis.extras.get(f"gmm_{group}_weights")
-        if means is not None:
-            c = rng.choice(len(means), p=np.asarray(weights) / np.sum(weights)) if weights is not None else 0
-            code[a:b] = rng.multivariate_normal(means[c], covs[c])
-        else:
-            code[a:b] = rng.normal(scale=0.5, size=b - a)
+def sample_code(basis, seed, scale=1.0):
+    """A plausible code (P,): a draw from the basis' stored distribution of initial velocities (the
+    code reached along the straight latent line), else a small Gaussian."""
+    if any(k.startswith("gmm_") for k in basis.extras):
+        code = solver.module("statistics").sample_velocities(basis.extras, basis.groups, 1, seed)[0]
+    else:
+        code = np.random.default_rng(seed).normal(scale=0.5, size=basis.n_fields)
     return scale * code
 
 
@@ -124,13 +119,12 @@ def run_demo(out, basis_name="humanoid", schedule="FAST", frames=24, seed=0, fig
     basis, _ = solver.load_basis(s.basis)
     log(f"basis '{basis.name}': {basis.template.shape[0]} vertices, {basis.n_fields} fields "
         f"({', '.join(f'{g} {b - a}' for g, (a, b) in basis.groups.items())}); schedule {schedule.lower()}")
-    rng = np.random.default_rng(seed)
 
     # 1. two simulated scans of two different bodies in two different poses
     scans = []
     with stage(times, "simulate 2 scans"):
         for i, name in enumerate(("scan_A", "scan_B")):
-            truth = basis.template + np.tensordot(sample_code(basis, rng), basis.fields, axes=1)
+            truth = basis.template + np.tensordot(sample_code(basis, seed + 100 + i), basis.fields, axes=1)
             v, f = simulate_scan(truth, basis.faces, seed=seed + i + 1)
             scans.append(add_object(name, v, f, scene.collection, location=(0, 0, 0)))
             log(f"{name}: {len(v)} vertices, {len(f)} faces (remeshed, holes, rigidly moved)")
@@ -159,7 +153,7 @@ def run_demo(out, basis_name="humanoid", schedule="FAST", frames=24, seed=0, fig
         actor.name = "actor"
         code = np.zeros(basis.n_fields)
         ident = basis.group_slice("shape") if "shape" in basis.groups else slice(0, basis.n_fields)
-        code[ident] = sample_code(basis, np.random.default_rng(seed + 10), 1.2)[ident]
+        code[ident] = sample_code(basis, seed + 10, 1.2)[ident]
         convert.set_code(actor, solver.field_names(basis), code)
         s.identity_group = "shape" if "shape" in basis.groups else next(iter(basis.groups))
         assert bpy.ops.bareesa.transfer_motion(source=path_obj.name, target=actor.name) == {"FINISHED"}

@@ -15,7 +15,7 @@ motions (``TEST_MOTIONS``) are regenerated with the Blender generator (needs ``b
    prefixes of the pose and shape groups.
 4. A contact sheet PNG (template, identities, a motion).
 
-Usage: python bench/humanoid_accuracy.py [--scans N] [--quick] [--out bench/out]
+Usage: python -m bench.humanoid_accuracy [--scans N] [--full NPZ] [--card] [--out bench/out]
 """
 
 import argparse
@@ -115,7 +115,8 @@ def interpolation_rows(basis, seqs, halves=(2, 4), stride=3):
     out = {(task, hf): {m: [] for m in methods} for task in ("interpolation", "extrapolation") for hf in halves}
     failures = []
     decode = lambda p: basis.template + np.tensordot(p, basis.fields, axes=1)  # noqa: E731
-    for key in sorted(seqs):
+    for n_done, key in enumerate(sorted(seqs)):
+        print(f"  sequence {n_done + 1}/{len(seqs)}: identity {key[0]}, {key[1]}", flush=True)
         seq = seqs[key].astype(np.float64)
         sigma = 0.025 * float(seq[0][:, 2].max() - seq[0][:, 2].min())
         code = {}
@@ -244,7 +245,11 @@ def main(argv=None):
     parser.add_argument("--full", type=Path, metavar="NPZ",
                         help="a float64 build of the same basis (python -m bases.build --keep-full DIR): the scans "
                              "are registered with both, to show the shipped precision changes nothing")
+    parser.add_argument("--card", action="store_true",
+                        help="write the measured accuracy into the bundled basis' card (bases/<basis>.json)")
     args = parser.parse_args(argv)
+    if args.card and args.basis not in ("humanoid", "deformables"):
+        parser.error("--card needs a bundled basis name")
     import torch
 
     torch.set_num_threads(args.threads)
@@ -291,6 +296,32 @@ def main(argv=None):
             results["registration_full_precision"] = {"rows": full, "mean": full_mean,
                                                       "max_abs_diff_mean_mm": max(diff)}
     (args.out / "humanoid_accuracy.json").write_text(json.dumps(results, indent=2) + "\n")
+    if args.card:
+        write_card_accuracy(args.basis, results)
+
+
+def write_card_accuracy(name, results):
+    """Record the measured accuracy in the bundled basis' JSON card (bases/<name>.json)."""
+    from core.latent import BUNDLED_DIR
+
+    path = BUNDLED_DIR / f"{name}.json"
+    card = json.loads(path.read_text())
+    summary = {"measured_by": "python -m bench.humanoid_accuracy --card", "date": time.strftime("%Y-%m-%d"),
+               "data": "simulated scans / frames of held-out identities in held-out motions"}
+    if "registration" in results:
+        summary["registration_mean"] = results["registration"]["mean"]
+        summary["registration_rows"] = [{k: r[k] for k in ("scan", "mean_mm", "p95_mm", "mean_%h", "chamfer_mm")}
+                                        for r in results["registration"]["rows"]]
+    if "registration_full_precision" in results:
+        summary["float64_fields_max_abs_diff_mean_mm"] = results["registration_full_precision"][
+            "max_abs_diff_mean_mm"]
+    if "interpolation" in results:
+        summary["interpolation"] = results["interpolation"]
+    if "ablation" in results:
+        summary["ablation_rms_projection_mm"] = results["ablation"]
+    card["accuracy"] = summary
+    path.write_text(json.dumps(card, indent=2) + "\n")
+    print(f"wrote the accuracy into {path}")
 
 
 if __name__ == "__main__":

@@ -79,7 +79,44 @@ def test_humanoid_rest_pose_differences_are_spanned_by_the_shape_group():
     assert rms < 1e-9 and np.allclose(code[a], 0.7) and np.allclose(code[z - 1], -0.4)
 
 
+def _face_areas(v, f):
+    p = v[f]
+    return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+
+
+def test_humanoid_template_has_no_slivers():
+    # a near-zero-area face makes the H2 energy of any motion that moves it explode
+    b = load_basis("humanoid")
+    a = _face_areas(b.template, b.faces)
+    assert a.min() > 0.01 * np.median(a)
+
+
 # --------------------------------------------------------------------------- generator (bpy)
+
+
+def test_relaxed_cage_separates_coincident_vertices_and_keeps_the_surface():
+    pytest.importorskip("bpy")
+    from bases.build.humanoid import relax_cage
+
+    # a cube's quads with a doubled corner: vertex 8 sits on vertex 0 and replaces it in one face
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1],
+                  [0, 0, 0]], dtype=np.float64)
+    polys = [(8, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7), (0, 8, 1)]
+    r = relax_cage(v, polys, iterations=10)
+    assert np.linalg.norm(r[0] - r[8]) > 0.05
+    assert np.abs(r.mean(0) - v.mean(0)).max() < 0.1 and np.ptp(r, axis=0).min() > 0.9  # no collapse
+
+
+def test_humanoid_raises_each_arm_alone():
+    # one-arm poses (a held-out wave) are only spanned if the training motions move the arms separately
+    pytest.importorskip("bpy")
+    from bases.build.humanoid import pose_at
+
+    left, _ = pose_at("arms_raise_side", 1 / 6)
+    right, _ = pose_at("arms_raise_side", 0.5)
+    assert abs(left["upper_arm.L"][0][1]) > 140 and abs(left["upper_arm.R"][0][1]) < 1
+    assert abs(right["upper_arm.R"][0][1]) > 140 and abs(right["upper_arm.L"][0][1]) < 1
+
 
 
 def test_humanoid_generator_gives_one_topology_for_two_body_types():
@@ -96,6 +133,8 @@ def test_humanoid_generator_gives_one_topology_for_two_body_types():
     for v, f in ((v0, f0), (v1, f1)):
         rep = validate_mesh(v, f)
         assert rep.n_boundary_edges == 0 and rep.n_nonmanifold_edges == 0
+        a = _face_areas(v, f)
+        assert a.min() > 0.01 * np.median(a)
     b = load_basis("humanoid")
     if len(b.template) == len(v0):  # the bundled basis was built by this generator
         assert np.array_equal(b.faces, f0)

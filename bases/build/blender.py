@@ -30,8 +30,29 @@ def mesh_arrays(mesh):
     return v.reshape(-1, 3), [tuple(p.vertices) for p in mesh.polygons]
 
 
-def triangles(polygons):
-    """Polygons (quads or triangles) -> triangles (F, 3) int64, quads split along their 0-2 diagonal."""
+def triangles(polygons, verts=None):
+    """Polygons (quads or triangles) -> triangles (F, 3) int64, fans from each polygon's first vertex.
+
+    With verts (N, 3), each quad is split along the diagonal whose worse triangle is the
+    rounder (largest min of area / sum of squared edges), and the polygons are returned
+    rotated accordingly (-> (triangles, polygons)): reuse those polygons without verts to
+    split other poses of the same mesh identically.
+    """
+    if verts is not None:
+        v = np.asarray(verts, dtype=np.float64)
+
+        def roundness(a, b, c):
+            area = np.linalg.norm(np.cross(v[b] - v[a], v[c] - v[a]))
+            return area / (np.sum((v[b] - v[a]) ** 2) + np.sum((v[c] - v[b]) ** 2) + np.sum((v[a] - v[c]) ** 2))
+
+        rotated = []
+        for p in polygons:
+            if len(p) == 4:
+                a, b, c, d = p
+                if min(roundness(b, c, d), roundness(b, d, a)) > min(roundness(a, b, c), roundness(a, c, d)):
+                    p = (b, c, d, a)
+            rotated.append(tuple(p))
+        return triangles(rotated), rotated
     out = []
     for p in polygons:
         for k in range(1, len(p) - 1):

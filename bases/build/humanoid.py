@@ -2,8 +2,10 @@
 
 Model. A skeleton graph (joints and mid-limb nodes, Z-up, facing -Y, left = +X,
 metres, feet on z = 0) is turned into a closed quad cage by Blender's Skin
-modifier (once, for the reference body) and smoothed by a Subdivision Surface
-modifier (level 2) into the surface (~7k vertices). The Skin modifier's output
+modifier (once, for the reference body), relaxed tangentially (the Skin modifier
+leaves coincident vertices where the branches meet at the chest) and smoothed by a
+Subdivision Surface modifier (level 2) into the surface (~5k vertices); quads are split
+along the diagonal that gives the rounder triangles on the template. The Skin modifier's output
 topology depends on the joint positions and radii, so body types are *not*
 re-skinned: each identity moves the reference cage vertices with its own
 skeleton (every cage vertex keeps its position along, and offset around, the
@@ -51,6 +53,7 @@ FRAMES = 48                # frames per motion at 24 fps
 KEY_STEP = 3               # a keyframe every KEY_STEP frames
 BAKE_STEP = 3              # a baked mesh every BAKE_STEP frames -> 17 meshes per motion
 SUBDIVISION = 2
+CAGE_RELAX_ITERATIONS = 10  # tangential relaxation of the Skin cage (coincident vertices at the chest)
 POSE_COMPONENTS = 80
 SHAPE_COMPONENTS = 12
 
@@ -170,7 +173,36 @@ def reference_cage():
     verts, polys = mesh_arrays(me)
     bpy.data.objects.remove(obj)
     bpy.data.meshes.remove(me)
-    return verts, polys
+    return relax_cage(verts, polys), polys
+
+
+def relax_cage(verts, polys, iterations=CAGE_RELAX_ITERATIONS, step=0.5):
+    """Tangential Laplacian relaxation of a cage: verts (N, 3), polygons -> verts (N, 3).
+
+    The Skin modifier leaves coincident vertices and needle quads where branches meet
+    (the chest); subdivided, they become near-zero-area slivers, and the H2 energy of any
+    motion that moves them (a raised arm) explodes. Each step moves every vertex towards
+    its neighbours' mean within its tangent plane, which evens the quads out without
+    shrinking the body.
+    """
+    x = np.asarray(verts, dtype=np.float64).copy()
+    n = len(x)
+    edges = {(min(a, b), max(a, b)) for p in polys for a, b in zip(p, p[1:] + p[:1])}
+    i, j = np.array(sorted(edges)).T
+    degree = np.bincount(np.r_[i, j], minlength=n).astype(np.float64)
+    tris = np.array([(p[0], p[k], p[k + 1]) for p in polys for k in range(1, len(p) - 1)])
+    for _ in range(iterations):
+        mean = np.zeros_like(x)
+        np.add.at(mean, i, x[j])
+        np.add.at(mean, j, x[i])
+        d = mean / degree[:, None] - x
+        face_n = np.cross(x[tris[:, 1]] - x[tris[:, 0]], x[tris[:, 2]] - x[tris[:, 0]])
+        normal = np.zeros_like(x)
+        for c in range(3):
+            np.add.at(normal, tris[:, c], face_n)
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True) + 1e-15
+        x += step * (d - (d * normal).sum(1, keepdims=True) * normal)
+    return x
 
 
 def _frame(u):
@@ -331,8 +363,11 @@ def pose_at(motion, u):
             add(f"{bone}.{s}", ax, a)
 
     s1 = math.sin(2 * math.pi * u)
-    if motion == "arms_raise_side":
-        both("upper_arm", Y, -95 * _bump(u))
+    if motion == "arms_raise_side":  # left arm overhead, then the right one, then both to the side
+        for s, (lo, hi, deg) in (("L", (0, 1 / 3, 150)), ("R", (1 / 3, 2 / 3, 150))):
+            ax, a = _side(s, Y, -deg * _bump(min(1.0, max(0.0, (u - lo) / (hi - lo)))))
+            add(f"upper_arm.{s}", ax, a)
+        both("upper_arm", Y, -95 * _bump(max(0.0, 3 * u - 2)))
     elif motion == "arms_raise_front":
         both("upper_arm", X, -130 * _bump(u))
         both("upper_arm", Y, 25 * _bump(u))
@@ -483,8 +518,9 @@ class Generator:
         self.cage, self.polys = reference_cage()
         self.reshaper = Reshaper(self.cage)
         self.weights = automatic_weights(self.cage, self.polys)
-        self.faces = None
+        self.faces = self._polygons = None
         self.log = log
+        self.template = self.rest_mesh({})[0]  # decides how quads are split, for every body
 
     def rest_mesh(self, params):
         """Rest-pose surface of a body type: -> verts (N, 3), faces (F, 3) (triangulated quads)."""
@@ -495,12 +531,11 @@ class Generator:
         verts, polys = mesh_arrays(me)
         ev.to_mesh_clear()
         self._remove(body, rig)
-        faces = triangles(polys)
-        if self.faces is None:
-            self.faces = faces
-        elif not np.array_equal(faces, self.faces):
+        if self.faces is None:  # the first body (the template) decides how quads are split
+            self.faces, self._polygons = triangles(polys, verts)
+        elif [set(p) for p in polys] != [set(p) for p in self._polygons]:
             raise RuntimeError("a body type changed the topology")
-        return verts, faces
+        return verts, self.faces
 
     def motion(self, params, motion):
         """Baked sequence (T, N, 3) of a body type performing a motion."""
@@ -531,7 +566,7 @@ def generate(log=print, motion_identities=MOTION_IDENTITIES, test=True):
     """Bake the training (and held-out) data: -> dict of arrays (float32 sequences)."""
     t0 = time.perf_counter()
     gen = Generator(log)
-    template, faces = gen.rest_mesh({})
+    template, faces = gen.template, gen.faces
     train, test_ids = identity_sets()
     rests = [gen.rest_mesh(p)[0] for p in train]
     log(f"humanoid: cage {len(gen.cage)} vertices, surface {len(template)} vertices, {len(faces)} faces; "
