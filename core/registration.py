@@ -80,6 +80,9 @@ BIN_GAIN = 0.05             # "auto" bins a level when that leaves at most this 
 #: ``binned_measure`` (None: the scan's faces are used as they are)
 FINE_TOL = 1e-4
 SCAN_CELL = 0.5
+#: a level changes the similarity's scale by at most this factor (log): pre-alignment matched the
+#: surface areas, and a free scale let wrong alignments grow the template over the scan (x1.9)
+SCALE_LOG_LIMIT = math.log(1.15)
 
 
 # --------------------------------------------------------------------------- similarity
@@ -163,11 +166,17 @@ class Similarity:
             raise InputError(f"not a similarity record: {d!r}") from exc
 
 
+def _log_scale(l):
+    """A level's log-scale change, bounded smoothly to +-SCALE_LOG_LIMIT (numpy or torch)."""
+    return SCALE_LOG_LIMIT * (np.tanh(l / SCALE_LOG_LIMIT) if isinstance(l, float) else
+                              torch.tanh(l / SCALE_LOG_LIMIT))
+
+
 def _delta_similarity(params, center, units):
     """Similarity x -> c + e^l R(w) (x - c) + tau of params (w, tau, l) / units (7,) numpy."""
     p = np.asarray(params) * units
     r = _rotation_np(p[:3])
-    s = float(np.exp(p[6]))
+    s = float(np.exp(_log_scale(float(p[6]))))
     return Similarity(r, s, center - s * r @ center + p[3:6])
 
 
@@ -735,7 +744,8 @@ class _Problem:
             final = meshes[-1]
             if self.n_extra:
                 p = x[steps * p_dim:] * units_t
-                final = self.center_t + torch.exp(p[6]) * (final - self.center_t) @ _rotation(p[:3]).T + p[3:6]
+                final = (self.center_t + torch.exp(_log_scale(p[6])) * (final - self.center_t) @ _rotation(p[:3]).T
+                         + p[3:6])
             gamma = loss(final, self.faces)
             fit = gamma
             if self.marks is not None:

@@ -1,6 +1,7 @@
 """Registration of unregistered scans: latent code retrieval, pre-alignment, landmarks, clutter."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -265,3 +266,19 @@ def test_screen_score_tracks_the_exact_objective_and_ranks_alignments_like_it(sp
         scores.append(problem.screen_score(level, path, transform, 1.0))
     assert np.allclose(scores, exact, rtol=0.02)
     assert np.argsort(scores).tolist() == np.argsort(exact).tolist() and np.argmin(scores) == 0
+
+
+def test_a_level_changes_the_scale_by_a_bounded_factor():
+    # a free scale let a wrong alignment grow the template over a body scan (x1.9) and win the screening
+    units = np.ones(7)
+    center = np.array([0.1, -0.2, 0.3])
+    limit = math.exp(registration.SCALE_LOG_LIMIT)
+    for l in (-50.0, -1.0, 1.0, 50.0):
+        s = registration._delta_similarity(np.r_[np.zeros(6), l], center, units).scale
+        assert 1 / limit - 1e-12 <= s <= limit + 1e-12
+    small = registration._delta_similarity(np.r_[np.zeros(6), 0.01], center, units)
+    assert np.isclose(small.scale, math.exp(0.01), rtol=1e-3)  # near identity the scale is unchanged
+    np.testing.assert_allclose(small.apply(center[None]), center[None], atol=1e-15)
+    # the objective's torch map is the same bound
+    t = registration._log_scale(torch.tensor([-50.0, 0.01, 50.0], dtype=torch.float64))
+    np.testing.assert_allclose(t.numpy(), [registration._log_scale(x) for x in (-50.0, 0.01, 50.0)])
