@@ -35,6 +35,8 @@ def test_bundled_basis_card_matches_arrays(basis):
     assert {k: tuple(v) for k, v in card["groups"].items()} == basis.groups
     for group in basis.groups:
         assert card["provenance"]["groups"][group]["explained_variance"] > 0.9
+    if basis.name == "humanoid":  # measured by python -m bench.humanoid_accuracy --card
+        assert card["accuracy"]["registration_mean"]["mean_mm"] > 0
 
 
 def test_bundled_basis_carries_a_fitted_distribution(basis):
