@@ -44,7 +44,7 @@ def held_out_data(log=print):
 
     gen = humanoid.Generator(log)
     _, test = humanoid.identity_sets()
-    faces = gen.rest_mesh({})[1]
+    faces = gen.faces
     rests = [gen.rest_mesh(p)[0] for p in test]
     seqs = {(i, m): gen.motion(p, m) for i, p in enumerate(test) for m in humanoid.TEST_MOTIONS}
     return gen, faces, rests, seqs
@@ -88,6 +88,11 @@ def registration_rows(basis, faces, seqs, n_scans, seed=0):
     return rows
 
 
+def _mean_row(rows):
+    """Column means of registration rows (the numeric columns)."""
+    return {k: round(float(np.mean([r[k] for r in rows])), 3) for k in rows[0] if k != "scan"}
+
+
 # ---------------------------------------------------------------------- interpolation
 
 
@@ -105,7 +110,7 @@ def interpolation_rows(basis, seqs, halves=(2, 4), stride=3):
     are projections of the true frames (``project_to_basis``); the vertex baselines use the true
     frames themselves. A shot that does not converge is counted and left out for every method.
     """
-    from core.geodesic import geodesic, resample_path
+    from core.geodesic import decode_path, geodesic, resample_path
     from core.latent import project_to_basis
     from core.shooting import ShootingFailed, extrapolate
 
@@ -114,7 +119,7 @@ def interpolation_rows(basis, seqs, halves=(2, 4), stride=3):
     methods = ("H2 geodesic", "latent line", "vertex blend")
     out = {(task, hf): {m: [] for m in methods} for task in ("interpolation", "extrapolation") for hf in halves}
     failures = []
-    decode = lambda p: basis.template + np.tensordot(p, basis.fields, axes=1)  # noqa: E731
+    decode = lambda path: decode_path(t, h, path)  # noqa: E731
     for n_done, key in enumerate(sorted(seqs)):
         print(f"  sequence {n_done + 1}/{len(seqs)}: identity {key[0]}, {key[1]}", flush=True)
         seq = seqs[key].astype(np.float64)
@@ -248,8 +253,8 @@ def main(argv=None):
     parser.add_argument("--card", action="store_true",
                         help="write the measured accuracy into the bundled basis' card (bases/<basis>.json)")
     args = parser.parse_args(argv)
-    if args.card and args.basis not in ("humanoid", "deformables"):
-        parser.error("--card needs a bundled basis name")
+    if args.card and args.basis != "humanoid":
+        parser.error("--card writes into bases/humanoid.json: it needs --basis humanoid")
     import torch
 
     torch.set_num_threads(args.threads)
@@ -281,14 +286,14 @@ def main(argv=None):
     if "registration" not in args.skip and args.scans > 0:
         print("\nRegistration of simulated scans of held-out identities in held-out motions")
         rows = registration_rows(basis, faces, seqs, args.scans)
-        mean = {k: round(float(np.mean([r[k] for r in rows])), 3) for k in rows[0] if k not in ("scan",)}
+        mean = _mean_row(rows)
         print("mean  " + "  ".join(f"{k}={v}" for k, v in mean.items()))
         results["registration"] = {"rows": rows, "mean": mean}
         if args.full is not None:
             print(f"\nThe same scans registered with the float64 fields of {args.full}")
             full = registration_rows(load_basis(args.full), faces, seqs, args.scans)
             diff = [abs(a["mean_mm"] - b["mean_mm"]) for a, b in zip(rows, full)]
-            full_mean = {k: round(float(np.mean([r[k] for r in full])), 3) for k in full[0] if k != "scan"}
+            full_mean = _mean_row(full)
             print("mean  " + "  ".join(f"{k}={v}" for k, v in full_mean.items()))
             print(f"shipped ({basis.fields.dtype} on load, stored {basis.provenance.get('fields_dtype', '?')}) vs "
                   f"float64 fields: mean vertex error {mean['mean_mm']} vs {full_mean['mean_mm']} mm; largest "

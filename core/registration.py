@@ -167,16 +167,16 @@ class Similarity:
 
 
 def _log_scale(l):
-    """A level's log-scale change, bounded smoothly to +-SCALE_LOG_LIMIT (numpy or torch)."""
-    return SCALE_LOG_LIMIT * (np.tanh(l / SCALE_LOG_LIMIT) if isinstance(l, float) else
-                              torch.tanh(l / SCALE_LOG_LIMIT))
+    """A level's log-scale change (tensor), bounded smoothly to +-SCALE_LOG_LIMIT (the objective and
+    ``_delta_similarity`` share it)."""
+    return SCALE_LOG_LIMIT * torch.tanh(l / SCALE_LOG_LIMIT)
 
 
 def _delta_similarity(params, center, units):
     """Similarity x -> c + e^l R(w) (x - c) + tau of params (w, tau, l) / units (7,) numpy."""
     p = np.asarray(params) * units
     r = _rotation_np(p[:3])
-    s = float(np.exp(_log_scale(float(p[6]))))
+    s = float(torch.exp(_log_scale(torch.tensor(float(p[6]), dtype=torch.float64))))
     return Similarity(r, s, center - s * r @ center + p[3:6])
 
 

@@ -279,6 +279,7 @@ def test_a_level_changes_the_scale_by_a_bounded_factor():
     small = registration._delta_similarity(np.r_[np.zeros(6), 0.01], center, units)
     assert np.isclose(small.scale, math.exp(0.01), rtol=1e-3)  # near identity the scale is unchanged
     np.testing.assert_allclose(small.apply(center[None]), center[None], atol=1e-15)
-    # the objective's torch map is the same bound
+    # the objective's map is the same bound as the transform a level returns
     t = registration._log_scale(torch.tensor([-50.0, 0.01, 50.0], dtype=torch.float64))
-    np.testing.assert_allclose(t.numpy(), [registration._log_scale(x) for x in (-50.0, 0.01, 50.0)])
+    scales = [registration._delta_similarity(np.r_[np.zeros(6), x], center, units).scale for x in (-50.0, 0.01, 50.0)]
+    np.testing.assert_allclose(np.exp(t.numpy()), scales, rtol=1e-14)

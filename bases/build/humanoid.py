@@ -182,8 +182,9 @@ def relax_cage(verts, polys, iterations=CAGE_RELAX_ITERATIONS, step=0.5):
     The Skin modifier leaves coincident vertices and needle quads where branches meet
     (the chest); subdivided, they become near-zero-area slivers, and the H2 energy of any
     motion that moves them (a raised arm) explodes. Each step moves every vertex towards
-    its neighbours' mean within its tangent plane, which evens the quads out without
-    shrinking the body.
+    its neighbours' mean within its tangent plane, which evens the quads out; on the coarse
+    cage of the thin limbs it still thins the subdivided surface (template area 1.62 -> 1.46
+    m^2 with 10 iterations).
     """
     x = np.asarray(verts, dtype=np.float64).copy()
     n = len(x)
