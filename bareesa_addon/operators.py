@@ -696,6 +696,8 @@ class BAREESA_OT_build_basis(SolveOperator, bpy.types.Operator):
             basis = latent.build_basis(frames[0], faces, {group: [frames]}, {group: k}, weights=weights, name=name,
                                        provenance={"source": what, "tool": "BaRe-ESA for Blender"},
                                        callback=callback, cancel=cancel)
+            if group == "pose":  # starting poses for registration (core.registration, pose candidates)
+                basis.extras["pose_prototypes"] = solver.module("statistics").pose_prototypes(basis, frames)
             latent.save_basis(path, basis)
             return basis
 

@@ -311,7 +311,9 @@ def write_card_accuracy(name, results):
 
     path = BUNDLED_DIR / f"{name}.json"
     card = json.loads(path.read_text())
-    summary = {"measured_by": "python -m bench.humanoid_accuracy --card", "date": time.strftime("%Y-%m-%d"),
+    # parts skipped in this run (--skip) keep their last measurement
+    summary = dict(card.get("accuracy", {}))
+    summary |= {"measured_by": "python -m bench.humanoid_accuracy --card", "date": time.strftime("%Y-%m-%d"),
                "data": "simulated scans / frames of held-out identities in held-out motions"}
     if "registration" in results:
         summary["registration_mean"] = results["registration"]["mean"]

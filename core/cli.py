@@ -133,6 +133,10 @@ def cmd_build_basis(args):
         from .statistics import fit_training_distribution
 
         basis.extras.update(fit_training_distribution(basis, [f for s in sequences.values() for f in s]))
+    if "pose" in sequences:  # starting poses tried by registration (core.registration, pose candidates)
+        from .statistics import pose_prototypes
+
+        basis.extras["pose_prototypes"] = pose_prototypes(basis, np.concatenate(sequences["pose"]))
     save_basis(args.output, basis)
     rows = {g: f"{b - a} fields, explained variance {basis.provenance['groups'][g]['explained_variance']:.4f}"
             for g, (a, b) in basis.groups.items()}

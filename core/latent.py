@@ -352,21 +352,22 @@ PROJECTION_RIDGE = 5e-3
 def project_to_basis(basis, verts, ridge=PROJECTION_RIDGE):
     """Code of a mesh already in template topology: F(alpha) ~ verts.
 
-    verts (N, 3) -> (alpha (P,), rms vertex residual). Minimises the area-weighted
-    |F(alpha) - verts|^2 + ridge * s * alpha^T G-bar(0) alpha, s = tr(M) / tr(G-bar(0)) with M
-    the fields' area-weighted Gram matrix (so ``ridge`` is relative and unit-free); ridge=0 is
-    plain least squares, exact for meshes in the span of the basis.
+    verts (N, 3) -> (alpha (P,), rms vertex residual), or a batch (M, N, 3) -> ((M, P), (M,)).
+    Minimises the area-weighted |F(alpha) - verts|^2 + ridge * s * alpha^T G-bar(0) alpha,
+    s = tr(M) / tr(G-bar(0)) with M the fields' area-weighted Gram matrix (so ``ridge`` is
+    relative and unit-free); ridge=0 is plain least squares, exact for meshes in the span of the basis.
     """
     verts = np.asarray(verts, dtype=np.float64)
-    if verts.shape != basis.template.shape:
-        raise InputError(f"mesh has {verts.shape[0]} vertices but basis '{basis.name}' has "
-                         f"{basis.template.shape[0]}: register it as a scan instead")
+    if verts.shape[-2:] != basis.template.shape or verts.ndim not in (2, 3):
+        raise InputError(f"mesh has {verts.shape[-2] if verts.ndim >= 2 else 0} vertices but basis "
+                         f"'{basis.name}' has {basis.template.shape[0]}: register it as a scan instead")
     if not np.isfinite(verts).all():
         raise InputError("the mesh has NaN or infinite vertex coordinates")
     if not (np.isfinite(ridge) and ridge >= 0):
         raise InputError(f"ridge must be a finite number >= 0, got {ridge}")
     a = basis.fields.reshape(basis.n_fields, -1).T.astype(np.float64)
-    target = (verts - basis.template).ravel()
+    batch = verts.reshape(-1, *basis.template.shape)
+    target = (batch - basis.template).reshape(len(batch), -1).T  # (3N, M)
     if ridge > 0:
         areas = geometry.vertex_areas(torch.from_numpy(basis.template), torch.from_numpy(basis.faces)).numpy()
         weighted = a * np.repeat(areas, 3)[:, None]
@@ -374,5 +375,7 @@ def project_to_basis(basis, verts, ridge=PROJECTION_RIDGE):
         alpha = np.linalg.solve(gram + ridge * np.trace(gram) / np.trace(metric) * metric, weighted.T @ target)
     else:
         alpha, *_ = np.linalg.lstsq(a, target, rcond=None)
-    residual = verts - basis.template - (a @ alpha).reshape(verts.shape)
-    return alpha, float(np.sqrt((residual**2).sum(1).mean()))
+    residual = np.sqrt(((target - a @ alpha) ** 2).reshape(basis.template.shape[0], 3, -1).sum(1).mean(0))
+    if verts.ndim == 2:
+        return alpha[:, 0], float(residual[0])
+    return alpha.T, residual

@@ -29,6 +29,14 @@ SCREEN_TIE, runs a short second level from both and keeps the one that fits bett
 level's sigma (at the first level's sigma a body is nearly front/back symmetric). The binet
 kernel ignores normal orientation, so inconsistently oriented scans align as well.
 
+Pose candidates (``_try_poses``): the first level cannot find a pose far from the template (at
+coarse sigma raising an arm overhead costs more energy than it gains in data term, so an elbow
+bends instead, and the finer levels keep that local minimum). A basis may store typical poses
+(``extras["pose_prototypes"]``, k-means centres of its training codes); before the second level
+each one's pose group, with the other groups of the code so far, is re-aligned to the scan and
+scored at the second level's sigma; the best few get a short second level next to the current
+path, and the one that fits best at the next level's sigma goes on.
+
 Frames: registration happens in the template frame; ``RegistrationResult.vertices`` are mapped
 back with the inverse similarity, so they overlay the scan in the scan's units.
 """
@@ -67,6 +75,17 @@ SCREEN_FINALISTS = 2        # the best screened alignments get a short second le
 SCREEN_SECOND_ITER = 5      # first level's sigma a body is nearly front/back symmetric...
 SCREEN_TIE = 1.5            # ... when the second best scored within this factor of the best
 PREALIGN_FRACTION = 0.1     # share of the progress bar given to the pre-alignment
+#: Pose candidates (a basis' stored ``pose_prototypes``): before the second level each prototype's pose
+#: coefficients, with the first level's other groups, are scored at the second level's sigma and weight
+#: (``screen_score`` of the straight path); the best POSE_FINALISTS within POSE_TIE x the first level's
+#: own score get a short second level next to it (POSE_ITER iterations) and the best fit goes on. The
+#: first level cannot find a pose far from the template (an arm raised overhead): at coarse sigma the
+#: energy of raising the shoulder outweighs the data term, so an elbow bends instead.
+POSE_FINALISTS = 2
+POSE_TIE = 2.0
+POSE_ITER = 40
+POSE_WEIGHT_GAIN = 10.0
+POSE_ALIGN_ITER = 15
 #: L-BFGS stops a level when an iteration lowers the objective by less than this relative amount
 #: (the objective is dominated by weight x varifold; later digits only polish the path's interior)
 LEVEL_FTOL = 1e-9
@@ -547,10 +566,35 @@ def _check_landmarks(landmarks, n_verts):
     return np.array(idx), np.stack(pts), np.array(wts)
 
 
+def _check_pose_candidates(basis, candidates):
+    """Pose candidates (K, P) float64 from ``register``'s argument, or None."""
+    if isinstance(candidates, str):
+        if candidates != "auto":
+            raise InputError(f"pose_candidates must be 'auto', None or an array of codes, got {candidates!r}")
+        candidates = basis.extras.get("pose_prototypes")
+    if candidates is None:
+        return None
+    codes = np.asarray(candidates, dtype=np.float64)
+    if codes.ndim != 2 or codes.shape[1] != basis.n_fields or not np.isfinite(codes).all():
+        raise InputError(f"pose candidates must be finite codes of shape (K, {basis.n_fields}), got {codes.shape}")
+    return codes if len(codes) else None
+
+
+def pose_starts(basis, candidates, code):
+    """Start codes from pose candidates: each candidate's "pose" group with ``code``'s other groups
+    (the candidates themselves when the basis has no "pose" group or nothing else): (K, P), (P,) -> (K, P)."""
+    starts = np.array(candidates, dtype=np.float64)
+    if "pose" in basis.groups and len(basis.groups) > 1:
+        keep = np.ones(basis.n_fields, dtype=bool)
+        keep[basis.group_slice("pose")] = False
+        starts[:, keep] = code[keep]
+    return starts
+
+
 def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, landmarks=None,
              landmark_weight=1.0, scan_face_weights=None, metric=None, kernel="binet", backend="auto",
-             binning="auto", refine_transform=None, init_code=None, callback=None, cancel=None, dtype=torch.float64,
-             device="cpu"):
+             binning="auto", refine_transform=None, init_code=None, pose_candidates="auto", callback=None, cancel=None,
+             dtype=torch.float64, device="cpu"):
     """Latent code of an unregistered scan: basis, scan (M, 3), (G, 3) -> RegistrationResult.
 
     schedule: Levels (default basis.schedule); prealign: align the scan to the template first
@@ -564,7 +608,10 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     alone over cells of SCAN_CELL x sigma when that leaves fewer points, ``VarifoldLoss(target_cell=)``,
     and truncates the kernel at FINE_TOL); refine_transform: optimise the
     similarity jointly with the path (default: as prealign); init_code (P,) starts from the
-    straight path 0 -> init_code; dtype: precision of the objective (the optimiser is float64).
+    straight path 0 -> init_code; pose_candidates (K, P): codes whose pose group (the whole code
+    when the basis has no other group) is tried as a start of the second level (see POSE_FINALISTS),
+    "auto" the basis' ``extras["pose_prototypes"]`` if it has them, None none; dtype: precision of
+    the objective (the optimiser is float64).
     Raises MeshError/InputError on bad input, SolveCancelled when cancelled (no partial result).
     """
     start_time = time.perf_counter()
@@ -588,6 +635,7 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
         if init.shape != (basis.n_fields,) or not np.isfinite(init).all():
             raise InputError(f"init_code must be {basis.n_fields} finite coefficients, got shape {init.shape}")
         path[1] = init
+    poses = _check_pose_candidates(basis, pose_candidates)
 
     monitor.report(0.0, "registration: pre-aligning" if prealign else "registration: starting")
     monitor.check()
@@ -603,6 +651,9 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     # progress: the first level is tried from every candidate alignment
     budget = np.array([lv.steps * lv.max_iter for lv in levels], dtype=np.float64)
     budget[0] *= 1 + (len(candidates) / SCREEN_DIVISOR if len(candidates) > 1 else 0)
+    tries_poses = poses is not None and len(levels) > 1
+    if tries_poses:
+        budget[1] += (POSE_FINALISTS + 1) * levels[1].steps * POSE_ITER
     lo = PREALIGN_FRACTION if prealign else 0.0
     bounds = lo + (1 - lo) * np.concatenate([[0.0], np.cumsum(budget) / budget.sum()])
     name = lambda k: f"registration level {k + 1}/{len(levels)}"  # noqa: E731
@@ -619,7 +670,7 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     best, resume = 0, None
     if len(tries) > 1:
         # the screened objectives ranked on fine cells; the finer second level decides between the best
-        scores = [problem.screen_score(levels[0], p, t, r["energy"]) for p, t, r in tries]
+        scores = [problem.screen_score(levels[0], p[-1], t, r["energy"]) for p, t, r in tries]
         order = np.argsort(scores)
         best = int(order[0])
         finalists = [int(j) for j in order[:SCREEN_FINALISTS] if scores[j] <= SCREEN_TIE * scores[best]]
@@ -627,7 +678,7 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
             short = replace(levels[1], max_iter=SCREEN_SECOND_ITER)
             second = [problem.solve_level(short, tries[j][0], tries[j][1], (mid, mid), name(1) + " (screening)")
                       for j in finalists]
-            k = int(np.argmin([problem.screen_score(levels[1], p, t, r["energy"]) for p, t, r in second]))
+            k = int(np.argmin([problem.screen_score(levels[1], p[-1], t, r["energy"]) for p, t, r in second]))
             best, resume = finalists[k], second[k]  # the second level goes on from the winner's short one
     (path, transform, first), initial = tries[best], candidates[best][1]
     if resume is not None:
@@ -637,8 +688,12 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     report = [first]
     monitor.report(bounds[1], f"{name(0)} done", first["objective"])
     for k in range(1, len(levels)):
-        path, transform, lv_report = problem.solve_level(levels[k], path, transform, (bounds[k], bounds[k + 1]),
-                                                         name(k))
+        span = (bounds[k], bounds[k + 1])
+        if k == 1 and tries_poses:
+            path, transform, share = _try_poses(problem, basis, levels[1], levels[min(2, len(levels) - 1)], path,
+                                                transform, poses, span, name(1))
+            span = (span[0] + share * (span[1] - span[0]), span[1])
+        path, transform, lv_report = problem.solve_level(levels[k], path, transform, span, name(k))
         report.append(lv_report)
         monitor.report(bounds[k + 1], f"{name(k)} done", lv_report["objective"])
 
@@ -649,6 +704,34 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     return RegistrationResult(code=code, vertices=vertices, path=path, transform=transform, levels=report,
                               varifold=report[-1]["varifold"], chamfer=chamfer(vertices, used),
                               seconds=time.perf_counter() - start_time, prealignment=initial)
+
+
+def _try_poses(problem, basis, level, judge, path, transform, candidates, progress, message):
+    """The pose-candidate stage before ``level`` (see POSE_FINALISTS): -> (path, transform, share of
+    ``progress`` used). The path returned is the best short solve, or ``path`` when no candidate is close.
+
+    Every start (the current end code and each candidate) is first re-aligned to the scan on its own
+    (``_CoarseVarifold`` at the level's sigma, from the current alignment): the pre-alignment matched
+    the scan's centroid and RMS radius to the template's, which a raised arm shifts by several cm.
+    """
+    code = path[-1]
+    level = replace(level, weight=level.weight * POSE_WEIGHT_GAIN)
+    starts = pose_starts(basis, candidates, code)
+    aligned, scores = zip(*[problem.realign(level, c, transform) for c in [code, *starts]])
+    scores = np.array(scores)
+    pick = [int(j) for j in np.argsort(scores[1:])[:POSE_FINALISTS] if scores[1 + j] <= POSE_TIE * scores[0]]
+    total = (POSE_FINALISTS + 1) * level.steps * POSE_ITER
+    full = level.steps * level.max_iter + total
+    if not pick:
+        return path, transform, 0.0
+    short = replace(level, max_iter=POSE_ITER)
+    lo, hi = progress
+    step = (hi - lo) * total / full / (len(pick) + 1)
+    firsts = [(path, aligned[0])] + [(np.stack([np.zeros_like(code), starts[j]]), aligned[1 + j]) for j in pick]
+    tries = [problem.solve_level(short, p, t, (lo + i * step, lo + (i + 1) * step),
+                                 f"{message} (pose {i + 1}/{len(pick) + 1})") for i, (p, t) in enumerate(firsts)]
+    best = int(np.argmin([problem.screen_score(judge, p[-1], t, r["energy"]) for p, t, r in tries]))
+    return tries[best][0], tries[best][1], total / full
 
 
 def _normal_gram(verts, faces, fields):
@@ -693,19 +776,53 @@ class _Problem:
         self.scale, self.n_fields = basis.scale, basis.n_fields
         self.fields_np = basis.fields
 
-    def screen_score(self, level, path, transform, energy):
+    def realign(self, level, code, transform):
+        """The alignment refined for the surface F(code) at ``level``'s sigma (binned binet varifold,
+        rotation, translation and a bounded log-scale about the template's centre) -> (Similarity,
+        weight * Gamma + energy of the straight path 0 -> code, Gamma on the coarse cells)."""
+        sigma = level.sigma * self.scale
+        cell = PREALIGN_CELL * sigma
+        with torch.no_grad():
+            verts = decode(self.template, self.fields, torch.as_tensor(code, dtype=self.dtype, device=self.device))
+        verts = verts.detach().cpu().numpy().astype(np.float64) - self.center
+        target = transform.apply(self.scan) - self.center
+        weights = None if self.scan_weights is None else self.scan_weights.detach().cpu().numpy()
+        coarse = _CoarseVarifold(_coarse_measure(target, self.scan_faces.cpu().numpy(), weights, cell),
+                                 _coarse_measure(verts, self.faces.cpu().numpy(), None, cell), sigma)
+        eye = torch.eye(3, dtype=torch.float64)
+        self.monitor.check()
+        x, gamma, _ = minimize_lbfgs(lambda p: coarse(torch.cat([p[:6], _log_scale(p[6:])]), eye), np.zeros(7),
+                                     max_iter=POSE_ALIGN_ITER, gtol=1e-9, ftol=1e-10)
+        # F(code) moved by S: x -> e^l R (x - c) + tau + c; the scan moves by the inverse instead
+        scale = math.exp(float(_log_scale(torch.as_tensor(x[6]))))
+        rot = _rotation_np(x[:3])
+        move = Similarity(rot, scale, x[3:6] + self.center - scale * rot @ self.center)
+        return move.inverse().compose(transform), level.weight * gamma + self.straight_energy(level, code)
+
+    def straight_energy(self, level, code):
+        """Energy of the straight path 0 -> code in ``level.steps`` steps: (P,) -> float."""
+        with torch.no_grad():
+            code = torch.as_tensor(code, dtype=self.dtype, device=self.device)
+            ramp = torch.linspace(0, 1, level.steps + 1, dtype=self.dtype, device=self.device)[:, None]
+            return float(h2_metric.path_energy(decode(self.template, self.fields, ramp * code), self.faces,
+                                               self.metric))
+
+    def screen_score(self, level, code, transform, energy=None):
         """weight * Gamma + energy of a solved path at ``level``'s sigma and weight, Gamma on a
         binning of both surfaces with cells of SCREEN_CELL x sigma.
 
         A level's objective bins with cells of BIN_CELL x sigma; its error (a difference of large
         kernel sums) depends on how each alignment falls on the cells, enough to rank a wrong
         alignment first: finer cells make the objective comparable across alignments.
-        path (T+1, P), transform: a ``solve_level`` result; energy: its path energy -> float.
+        code (P,), transform: the end of a ``solve_level`` result; energy: its path energy (None: the
+        energy of the straight path 0 -> code in ``level.steps`` steps) -> float.
         """
         sigma = level.sigma * self.scale
         target = torch.as_tensor(transform.apply(self.scan), dtype=self.dtype, device=self.device)
-        code = torch.as_tensor(path[-1], dtype=self.dtype, device=self.device)
+        code = torch.as_tensor(code, dtype=self.dtype, device=self.device)
         with torch.no_grad():
+            if energy is None:
+                energy = self.straight_energy(level, code)
             final = decode(self.template, self.fields, code)
             loss = BinnedVarifoldLoss(final, self.faces, target, self.scan_faces, sigma, self.kernel,
                                       self.scan_weights, cell=SCREEN_CELL * sigma)

@@ -168,3 +168,18 @@ def fit_training_distribution(basis, sequences, components=None, seed=0):
     t, f, h = basis.tensors()
     velocities = log_map(t, f, h, codes, basis.weights, steps=4)
     return fit_distribution(velocities, basis.groups, components or {"pose": 10, "shape": 6}, seed=seed)
+
+
+def pose_prototypes(basis, frames, k=24, seed=0):
+    """Typical poses for registration's pose-candidate stage: k-means centres (scikit-learn) of
+    the codes of training frames (M, N, 3), clustered on the "pose" group when the basis has one
+    -> (min(k, distinct codes), P), each centre the mean code of its cluster."""
+    from sklearn.cluster import KMeans
+
+    from .latent import project_to_basis
+
+    codes = np.unique(project_to_basis(basis, np.asarray(frames, dtype=np.float64))[0].round(12), axis=0)
+    part = codes[:, basis.group_slice("pose")] if "pose" in basis.groups else codes
+    labels = KMeans(n_clusters=min(k, len(codes)), n_init=4, random_state=seed).fit_predict(part)
+    return np.stack([codes[labels == j].mean(0) for j in np.unique(labels)])
+

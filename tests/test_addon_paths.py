@@ -373,7 +373,10 @@ def test_build_basis_from_an_animated_mesh_saves_and_loads_it(scene, tiny, tmp_p
     assert names[:3] == ["Basis", "pose_000", "pose_001"] and len(names) <= 6
     from core.latent import load_basis
 
-    ratios = load_basis(path).provenance["groups"]["pose"]["variance_ratios"]
+    learned = load_basis(path)
+    protos = learned.extras["pose_prototypes"]  # a "pose" group: registration's starting poses are stored
+    assert protos.shape[1] == learned.n_fields and 1 <= len(protos) <= 6 and np.isfinite(protos).all()
+    ratios = learned.provenance["groups"]["pose"]["variance_ratios"]
     assert sum(ratios[:2]) > 0.9999  # the frames mix two shape keys: two motions (Blender's float32 noise aside)
     assert bpy.ops.bareesa.load_template(basis="learned") == {"FINISHED"}
     assert scene.frame_current == 1

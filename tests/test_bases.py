@@ -47,6 +47,18 @@ def test_bundled_basis_carries_a_fitted_distribution(basis):
         assert all(np.linalg.eigvalsh(c).min() > 0 for c in covs)
 
 
+def test_humanoid_carries_distinct_pose_prototypes_for_registration():
+    b = load_basis("humanoid")
+    protos = b.extras["pose_prototypes"]
+    pose = protos[:, b.group_slice("pose")]
+    assert protos.shape == (24, b.n_fields) and np.isfinite(protos).all()
+    gaps = np.linalg.norm(pose[:, None] - pose[None], axis=-1) + np.eye(len(pose)) * 1e9
+    assert gaps.min() > 1e-3 * np.linalg.norm(pose, axis=1).max()  # no two centres alike
+    # typical training poses: the bodies they decode to move the vertices by cm to dm, no more
+    moves = np.linalg.norm(np.tensordot(protos, b.fields, axes=1), axis=-1).mean(1)
+    assert 0.005 < np.median(moves) < 0.3
+
+
 def test_humanoid_sizes_are_as_documented():
     b = load_basis("humanoid")
     height = b.template[:, 2].max() - b.template[:, 2].min()

@@ -95,6 +95,12 @@ def sequences(tmp_path):
     return tmp_path, v, f, seqs
 
 
+def load_mesh_v(path):
+    from core.mesh import load_mesh
+
+    return load_mesh(path)[0]
+
+
 def test_build_basis_then_distance_and_interpolate_on_registered_meshes(capsys, sequences):
     from core.latent import load_basis, project_to_basis
 
@@ -108,6 +114,12 @@ def test_build_basis_then_distance_and_interpolate_on_registered_meshes(capsys, 
     basis = load_basis(out)
     assert basis.n_fields == 2  # two independent motion directions, rank-limited
     assert basis.groups == {"pose": (0, 2)} and basis.weights == h2_metric.PRESETS["face"]
+    # pose prototypes for registration: k-means centres of the pose frames' codes
+    frames = np.stack([load_mesh_v(p) for p in seqs["bend"] + seqs["twist"]])
+    protos = basis.extras["pose_prototypes"]
+    distinct = np.unique(project_to_basis(basis, frames)[0].round(9), axis=0)
+    assert protos.shape == distinct.shape  # fewer distinct frames than the 24 centres: each its own
+    assert np.allclose(sorted(protos.tolist()), sorted(distinct.tolist()), atol=1e-8)
     end = seqs["bend"][-1]
     rc, text, err = run(capsys, "distance", tmp / "template.ply", end, "--basis", out, "--json")
     assert rc == 0, err

@@ -178,6 +178,13 @@ def test_projection_ridge_keeps_rough_tiny_directions_small_and_the_fit_close():
     assert rms_default < rms_plain + 1e-3 and rms_ridged < 3 * rms_plain  # the default barely changes the fit
     code, rms = project_to_basis(basis, exact, ridge=0)
     assert rms < 1e-9 and np.allclose(code, alpha)
+    # a batch projects each mesh as alone
+    codes, rms_batch = project_to_basis(basis, np.stack([noisy, exact]))
+    alone = project_to_basis(basis, exact)
+    assert codes.shape == (2, 7) and np.allclose(codes, [default, alone[0]])
+    assert np.allclose(rms_batch, [rms_default, alone[1]])
+    with pytest.raises(InputError, match="vertices"):
+        project_to_basis(basis, exact[:-1])
     with pytest.raises(InputError, match="ridge"):
         project_to_basis(basis, exact, ridge=-1.0)
     with pytest.raises(InputError, match="NaN"):

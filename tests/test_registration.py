@@ -253,7 +253,6 @@ def test_screen_score_tracks_the_exact_objective_and_ranks_alignments_like_it(sp
     problem = registration._Problem(basis, space["scan"], space["faces"], None, None, 1.0,
                                     H2Weights.parse(basis.weights), "binet", "dense", "auto", True,
                                     torch.float64, "cpu", Monitor("test"))
-    path = np.stack([np.zeros(6), space["alpha"]])
     exact, scores = [], []
     for degrees in (0.0, 10.0, 30.0, 180.0):
         r = registration._rotation_np(np.radians(degrees) * np.array([0.0, 0.6, 0.8]))
@@ -263,9 +262,68 @@ def test_screen_score_tracks_the_exact_objective_and_ranks_alignments_like_it(sp
                                         torch.as_tensor(transform.apply(space["scan"])),
                                         torch.as_tensor(space["faces"]), level.sigma * basis.scale))
         exact.append(level.weight * gamma + 1.0)
-        scores.append(problem.screen_score(level, path, transform, 1.0))
+        scores.append(problem.screen_score(level, space["alpha"], transform, 1.0))
     assert np.allclose(scores, exact, rtol=0.02)
     assert np.argsort(scores).tolist() == np.argsort(exact).tolist() and np.argmin(scores) == 0
+
+
+def _problem(space):
+    from core.h2_metric import H2Weights
+    from core.progress import Monitor
+
+    basis = space["basis"]
+    return registration._Problem(basis, space["scan"], space["faces"], None, None, 1.0,
+                                 H2Weights.parse(basis.weights), "binet", "dense", "auto", True, torch.float64,
+                                 "cpu", Monitor("test"))
+
+
+def test_pose_starts_take_only_the_pose_group_of_each_candidate(space):
+    from dataclasses import replace
+
+    rng = np.random.default_rng(0)
+    candidates, code = rng.normal(size=(3, 6)), rng.normal(size=6)
+    grouped = replace(space["basis"], groups={"pose": (0, 4), "shape": (4, 6)})
+    starts = registration.pose_starts(grouped, candidates, code)
+    assert np.array_equal(starts[:, :4], candidates[:, :4]) and np.array_equal(starts[:, 4:], np.tile(code[4:], (3, 1)))
+    assert np.array_equal(registration.pose_starts(space["basis"], candidates, code), candidates)  # no pose group
+
+
+def test_realign_moves_a_shifted_rescaled_scan_back_onto_the_surface(space):
+    problem, level = _problem(space), space["basis"].schedule[1]
+    size = np.ptp(space["scan"], axis=0).max()
+    off = registration.Similarity(registration._rotation_np(np.radians(4) * np.array([0.0, 0.6, 0.8])), 1.08,
+                                  np.array([0.05, -0.03, 0.04]) * size)
+    fixed, score = problem.realign(level, space["alpha"], off)
+    error = lambda t: np.linalg.norm(t.apply(space["scan"]) - space["scan"], axis=1).mean()  # noqa: E731
+    assert error(fixed) < 0.25 * error(off)
+    assert problem.screen_score(level, space["alpha"], fixed) < problem.screen_score(level, space["alpha"], off)
+    assert math.isfinite(score) and score > 0
+
+
+def test_pose_stage_starts_the_level_from_the_candidate_that_fits(space, monkeypatch):
+    # short solves of 2 iterations barely move: the stage must hand on the candidate near alpha*,
+    # not the template it was given or the far candidates
+    monkeypatch.setattr(registration, "POSE_ITER", 2)
+    basis, alpha = space["basis"], space["alpha"]
+    rng = np.random.default_rng(4)
+    candidates = np.concatenate([rng.normal(size=(4, 6)), [alpha + 0.05 * rng.normal(size=6)]])
+    path, transform, share = registration._try_poses(_problem(space), basis, basis.schedule[1], basis.schedule[-1],
+                                                     np.zeros((2, 6)), registration.Similarity(), candidates,
+                                                     (0.0, 1.0), "test")
+    assert 0 < share < 1
+    assert np.linalg.norm(path[-1] - alpha) < 0.2 * np.linalg.norm(alpha)
+    assert np.linalg.norm(transform.apply(space["scan"]) - space["scan"], axis=1).max() < 0.05
+
+
+def test_pose_candidates_auto_without_prototypes_changes_nothing_and_bad_ones_are_refused(space, aligned):
+    basis = space["basis"]
+    assert "pose_prototypes" not in basis.extras
+    again = registration.register(basis, space["scan"], space["faces"], prealign=False, backend="dense",
+                                  pose_candidates=None)
+    assert np.array_equal(again.code, aligned.code)
+    for bad in (np.zeros((2, 5)), np.full((1, 6), np.nan), "all"):
+        with pytest.raises(InputError, match="pose"):
+            registration.register(basis, space["scan"], space["faces"], pose_candidates=bad)
 
 
 def test_a_level_changes_the_scale_by_a_bounded_factor():

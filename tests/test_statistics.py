@@ -94,3 +94,24 @@ def test_whitened_vertex_geodesic_reaches_the_plain_solvers_energy_in_few_iterat
     assert np.array_equal(fast[0], v) and np.array_equal(fast[-1], bent)
     assert energy(fast) <= energy(plain) * (1 + 1e-9) < energy(plain_short)
     assert np.abs(fast - plain).max() < 1e-4 * np.abs(bent - v).max()
+
+
+def test_pose_prototypes_are_the_centres_of_the_training_poses():
+    from dataclasses import replace
+
+    basis, _ = synthetic.smooth_sphere_basis(subdivisions=1, n_fields=6, seed=0)
+    basis = replace(basis, groups={"pose": (0, 4), "shape": (4, 6)})
+    rng = np.random.default_rng(2)
+    poses = np.array([[0.5, 0, 0, 0], [0, -0.5, 0.3, 0], [0, 0, 0, 0.6]])
+    codes = np.concatenate([np.concatenate([poses[i % 3] + 0.01 * rng.normal(size=4), rng.normal(size=2)])[None]
+                            for i in range(30)])
+    frames = basis.template + np.tensordot(codes, basis.fields, axes=1)
+    protos = statistics.pose_prototypes(basis, frames, k=3)
+    assert protos.shape == (3, 6)
+    # clustered on the pose group only: the shape coefficients vary at random and do not split clusters
+    proj = latent.project_to_basis(basis, frames)[0]
+    expected = np.stack([proj[i::3].mean(0) for i in range(3)])  # each cluster's mean code
+    gaps = np.linalg.norm(expected[:, None] - protos[None], axis=-1)
+    assert gaps.min(1).max() < 1e-9 and sorted(gaps.argmin(1)) == [0, 1, 2]
+    assert np.linalg.norm(poses[:, None] - protos[None, :, :4], axis=-1).min(1).max() < 0.05
+    assert len(statistics.pose_prototypes(basis, frames[:2], k=24)) == 2  # never more centres than frames

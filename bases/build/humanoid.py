@@ -40,8 +40,10 @@ from mathutils import Quaternion, Vector
 
 from core.latent import PAPER_BODY_SCHEDULE, Level, build_basis
 from core.mesh import validate_mesh
+from core.statistics import pose_prototypes
 
 from .blender import bake, mesh_arrays, mesh_object, reset_scene, triangles
+
 from .common import elastic_paths, fit_basis_distribution, topology_signature
 
 NAME = "humanoid"
@@ -56,6 +58,7 @@ SUBDIVISION = 2
 CAGE_RELAX_ITERATIONS = 10  # tangential relaxation of the Skin cage (coincident vertices at the chest)
 POSE_COMPONENTS = 80
 SHAPE_COMPONENTS = 12
+POSE_PROTOTYPES = 24       # k-means centres of the training frames' codes (registration's pose candidates)
 
 # ------------------------------------------------------------------------------ skeleton
 
@@ -615,9 +618,14 @@ def build(pose_components=POSE_COMPONENTS, shape_components=SHAPE_COMPONENTS, lo
                         {"pose": pose_components, "shape": shape_components}, weights="body", scale=height,
                         name=NAME, units="m", schedule=PAPER_BODY_SCHEDULE, provenance=provenance)
     basis.provenance["groups"]["shape"]["construction"] = "elastic H2 geodesics template -> identity (4 meshes)"
+    frames = np.concatenate([s[1:] for s in data["sequences"].values()])
+    log(f"humanoid: {POSE_PROTOTYPES} pose prototypes from {len(frames)} training frames")
+    basis.extras["pose_prototypes"] = pose_prototypes(basis, frames, POSE_PROTOTYPES, seed=SEED)
+    basis.provenance["pose_prototypes"] = (f"{POSE_PROTOTYPES} k-means centres of the codes of the {len(frames)} "
+                                           "training frames (clustered on the pose group): registration's pose "
+                                           "candidates")
     if distribution:
         log("humanoid: fitting the distribution of initial velocities")
-        frames = np.concatenate([s[1:] for s in data["sequences"].values()])
         frames = np.concatenate([frames, data["train_rest"]])
         basis.extras.update(fit_basis_distribution(basis, frames, {"pose": 4, "shape": 2}, max_samples=40,
                                                    steps=3, max_iter=20))
