@@ -75,12 +75,13 @@ SCREEN_FINALISTS = 2        # the best screened alignments get a short second le
 SCREEN_SECOND_ITER = 5      # first level's sigma a body is nearly front/back symmetric...
 SCREEN_TIE = 1.5            # ... when the second best scored within this factor of the best
 PREALIGN_FRACTION = 0.1     # share of the progress bar given to the pre-alignment
-#: Pose candidates (a basis' stored ``pose_prototypes``): before the second level each prototype's pose
-#: coefficients, with the first level's other groups, are scored at the second level's sigma and weight
-#: (``screen_score`` of the straight path); the best POSE_FINALISTS within POSE_TIE x the first level's
-#: own score get a short second level next to it (POSE_ITER iterations) and the best fit goes on. The
-#: first level cannot find a pose far from the template (an arm raised overhead): at coarse sigma the
-#: energy of raising the shoulder outweighs the data term, so an elbow bends instead.
+#: Pose candidates (a basis' stored ``pose_prototypes``, see ``_try_poses``): before the second level each
+#: prototype's pose coefficients, with the code's other groups, are re-aligned to the scan (at most
+#: POSE_ALIGN_ITER L-BFGS steps) and scored at the second level's sigma with POSE_WEIGHT_GAIN x its
+#: weight (the level's own weight prefers a bent elbow to an arm raised overhead: less energy); the best
+#: POSE_FINALISTS within POSE_TIE x the current code's score get a short solve at that weight (POSE_ITER
+#: iterations) next to the current path; the one that fits best at the next level's sigma goes on at
+#: the level's own weight.
 POSE_FINALISTS = 2
 POSE_TIE = 2.0
 POSE_ITER = 40
