@@ -718,7 +718,7 @@ def _try_poses(problem, basis, level, judge, path, transform, candidates, progre
     code = path[-1]
     level = replace(level, weight=level.weight * POSE_WEIGHT_GAIN)
     starts = pose_starts(basis, candidates, code)
-    aligned, scores = zip(*[problem.realign(level, c, transform) for c in [code, *starts]])
+    aligned, scores = zip(*problem.realign(level, [code, *starts], transform))
     scores = np.array(scores)
     pick = [int(j) for j in np.argsort(scores[1:])[:POSE_FINALISTS] if scores[1 + j] <= POSE_TIE * scores[0]]
     total = (POSE_FINALISTS + 1) * level.steps * POSE_ITER
@@ -777,28 +777,30 @@ class _Problem:
         self.scale, self.n_fields = basis.scale, basis.n_fields
         self.fields_np = basis.fields
 
-    def realign(self, level, code, transform):
-        """The alignment refined for the surface F(code) at ``level``'s sigma (binned binet varifold,
-        rotation, translation and a bounded log-scale about the template's centre) -> (Similarity,
-        weight * Gamma + energy of the straight path 0 -> code, Gamma on the coarse cells)."""
+    def realign(self, level, codes, transform):
+        """The alignment refined for each surface F(code) at ``level``'s sigma (binned binet varifold,
+        rotation, translation and a bounded log-scale about the template's centre): codes (K, P) ->
+        [(Similarity, weight * Gamma + energy of the straight path 0 -> code)], Gamma on the coarse cells."""
         sigma = level.sigma * self.scale
         cell = PREALIGN_CELL * sigma
-        with torch.no_grad():
-            verts = decode(self.template, self.fields, torch.as_tensor(code, dtype=self.dtype, device=self.device))
-        verts = verts.detach().cpu().numpy().astype(np.float64) - self.center
-        target = transform.apply(self.scan) - self.center
         weights = None if self.scan_weights is None else self.scan_weights.detach().cpu().numpy()
-        coarse = _CoarseVarifold(_coarse_measure(target, self.scan_faces.cpu().numpy(), weights, cell),
-                                 _coarse_measure(verts, self.faces.cpu().numpy(), None, cell), sigma)
-        eye = torch.eye(3, dtype=torch.float64)
-        self.monitor.check()
-        x, gamma, _ = minimize_lbfgs(lambda p: coarse(torch.cat([p[:6], _log_scale(p[6:])]), eye), np.zeros(7),
-                                     max_iter=POSE_ALIGN_ITER, gtol=1e-9, ftol=1e-10)
-        # F(code) moved by S: x -> e^l R (x - c) + tau + c; the scan moves by the inverse instead
-        scale = math.exp(float(_log_scale(torch.as_tensor(x[6]))))
-        rot = _rotation_np(x[:3])
-        move = Similarity(rot, scale, x[3:6] + self.center - scale * rot @ self.center)
-        return move.inverse().compose(transform), level.weight * gamma + self.straight_energy(level, code)
+        scan = _coarse_measure(transform.apply(self.scan) - self.center, self.scan_faces.cpu().numpy(), weights, cell)
+        faces, eye = self.faces.cpu().numpy(), torch.eye(3, dtype=torch.float64)
+        out = []
+        for code in codes:
+            self.monitor.check()
+            with torch.no_grad():
+                verts = decode(self.template, self.fields, torch.as_tensor(code, dtype=self.dtype, device=self.device))
+            verts = verts.detach().cpu().numpy().astype(np.float64) - self.center
+            coarse = _CoarseVarifold(scan, _coarse_measure(verts, faces, None, cell), sigma)
+            x, gamma, _ = minimize_lbfgs(lambda p: coarse(torch.cat([p[:6], _log_scale(p[6:])]), eye), np.zeros(7),
+                                         max_iter=POSE_ALIGN_ITER, gtol=1e-9, ftol=1e-10)
+            # F(code) moved by S: x -> e^l R (x - c) + tau + c; the scan moves by the inverse instead
+            scale = math.exp(float(_log_scale(torch.as_tensor(x[6]))))
+            rot = _rotation_np(x[:3])
+            move = Similarity(rot, scale, x[3:6] + self.center - scale * rot @ self.center)
+            out.append((move.inverse().compose(transform), level.weight * gamma + self.straight_energy(level, code)))
+        return out
 
     def straight_energy(self, level, code):
         """Energy of the straight path 0 -> code in ``level.steps`` steps: (P,) -> float."""

@@ -155,15 +155,19 @@ def elastic_tangents(sequences, faces, weights, steps=5, callback=None, cancel=N
     return np.concatenate(out)
 
 
+def distinct_codes(basis, frames):
+    """Codes of registered frames (M, N, 3), duplicates (to 12 decimals) removed: -> (K, P) sorted."""
+    from .latent import project_to_basis
+
+    return np.unique(project_to_basis(basis, np.asarray(frames, dtype=np.float64))[0].round(12), axis=0)
+
+
 def fit_training_distribution(basis, sequences, components=None, seed=0):
     """Gaussian mixtures on the log maps of a basis' own training frames (random generation).
 
     sequences: list of (T_i, N, 3) registered frames; components {group: K} (paper: pose 10, shape 6).
     """
-    from .latent import project_to_basis
-
-    frames = np.concatenate([np.asarray(s) for s in sequences])
-    codes = np.unique(np.stack([project_to_basis(basis, v)[0] for v in frames]).round(12), axis=0)
+    codes = distinct_codes(basis, np.concatenate([np.asarray(s) for s in sequences]))
     codes = codes[np.abs(codes).sum(1) > 0]
     t, f, h = basis.tensors()
     velocities = log_map(t, f, h, codes, basis.weights, steps=4)
@@ -176,9 +180,7 @@ def pose_prototypes(basis, frames, k=24, seed=0):
     -> (min(k, distinct codes), P), each centre the mean code of its cluster."""
     from sklearn.cluster import KMeans
 
-    from .latent import project_to_basis
-
-    codes = np.unique(project_to_basis(basis, np.asarray(frames, dtype=np.float64))[0].round(12), axis=0)
+    codes = distinct_codes(basis, frames)
     part = codes[:, basis.group_slice("pose")] if "pose" in basis.groups else codes
     labels = KMeans(n_clusters=min(k, len(codes)), n_init=4, random_state=seed).fit_predict(part)
     return np.stack([codes[labels == j].mean(0) for j in np.unique(labels)])

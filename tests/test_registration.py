@@ -293,7 +293,7 @@ def test_realign_moves_a_shifted_rescaled_scan_back_onto_the_surface(space):
     size = np.ptp(space["scan"], axis=0).max()
     off = registration.Similarity(registration._rotation_np(np.radians(4) * np.array([0.0, 0.6, 0.8])), 1.08,
                                   np.array([0.05, -0.03, 0.04]) * size)
-    fixed, score = problem.realign(level, space["alpha"], off)
+    (fixed, score), = problem.realign(level, [space["alpha"]], off)
     error = lambda t: np.linalg.norm(t.apply(space["scan"]) - space["scan"], axis=1).mean()  # noqa: E731
     assert error(fixed) < 0.25 * error(off)
     assert problem.screen_score(level, space["alpha"], fixed) < problem.screen_score(level, space["alpha"], off)

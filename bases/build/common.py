@@ -35,7 +35,7 @@ def fit_basis_distribution(basis, frames, n_components, max_samples=120, steps=4
     """
     frames = np.asarray(frames)
     pick = np.unique(np.linspace(0, len(frames) - 1, min(max_samples, len(frames))).round().astype(int))
-    codes = np.stack([project_to_basis(basis, frames[i])[0] for i in pick])
+    codes = project_to_basis(basis, frames[pick])[0]
     codes = codes[np.abs(codes).sum(1) > 1e-9]
     t, f, h = basis.tensors()
     velocities = np.stack([initial_velocity(geodesic(t, f, h, np.zeros_like(c), c, basis.weights, steps=steps,

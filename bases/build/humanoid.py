@@ -38,7 +38,7 @@ import bpy
 import numpy as np
 from mathutils import Quaternion, Vector
 
-from core.latent import PAPER_BODY_SCHEDULE, Level, build_basis
+from core.latent import PAPER_BODY_SCHEDULE, build_basis
 from core.mesh import validate_mesh
 from core.statistics import pose_prototypes
 
