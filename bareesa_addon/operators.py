@@ -313,10 +313,14 @@ class BAREESA_OT_interpolate(SolveOperator, bpy.types.Operator):
 
     object_a: StringProperty(name="From", default="")
     object_b: StringProperty(name="To", default="")
+    anchor: BoolProperty(name="Keep Body Planted", default=True,
+                         description="Keep the body's unmoving part where the straight line between the ends puts it "
+                                     "(the metric's L2 term otherwise lets the body sink ~1 cm when a limb moves)")
 
     def prepare(self, context):
         s = settings(context)
         a, b = pick_pair(context, self.object_a, self.object_b)
+        anchor = self.anchor
         sources = [code_source(context, o) for o in (a, b)]
         basis, ref = common_basis(context, sources)
         frames = frame_range(context)
@@ -341,7 +345,7 @@ class BAREESA_OT_interpolate(SolveOperator, bpy.types.Operator):
                                  max_iter=max_iter, callback=scaled_callback(callback, 0.5 if raw else 0.0, 0.95),
                                  cancel=cancel)
                 raw_path, distance = g.path, g.distance
-            path = geo.resample_path(template, faces, fields, raw_path, weights, len(frames))
+            path = geo.keyframe_path(template, faces, fields, raw_path, weights, len(frames), anchor=anchor)
             return codes, path, distance
 
         def apply(context, result):

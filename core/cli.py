@@ -185,13 +185,14 @@ def cmd_distance(args):
 
 def cmd_interpolate(args):
     """Evenly paced geodesic in-betweens of two meshes, written as T meshes and their codes."""
-    from .geodesic import resample_path
+    from .geodesic import keyframe_path
 
     if args.steps < 2:
         raise InputError(f"--steps must be at least 2, got {args.steps}")
     basis, path, distance, seconds = _geodesic_between(args)
     t, f, h = basis.tensors()
-    _write_frames(args.output, basis, resample_path(t, f, h, path, basis.weights, args.steps))
+    _write_frames(args.output, basis, keyframe_path(t, f, h, path, basis.weights, args.steps,
+                                                    anchor=not args.no_anchor))
     result = {"distance": distance, "seconds": seconds, "frames": args.steps, "output": str(args.output)}
     _print(result, args.json, "geodesic interpolation")
 
@@ -337,7 +338,7 @@ def cmd_demo(args):
     import time
 
     from .evaluation import vertex_error
-    from .geodesic import geodesic, resample_path
+    from .geodesic import geodesic, keyframe_path
     from .latent import load_basis
     from .mesh import save_mesh
     from .progress import tqdm_callback
@@ -376,7 +377,7 @@ def cmd_demo(args):
     t, f, h = basis.tensors()
     path = geodesic(t, f, h, codes[0], codes[1], basis.weights, steps=max(args.steps, 3),
                     metric=basis.template_metric()).path
-    _write_frames(out / "geodesic", basis, resample_path(t, f, h, path, basis.weights, args.steps))
+    _write_frames(out / "geodesic", basis, keyframe_path(t, f, h, path, basis.weights, args.steps))
     rows.append(("geodesic/", f"{args.steps} evenly paced frames A -> B", time.perf_counter() - t0,
                  "in the template frame"))
     print(f"\nwrote to {out}/ ({time.perf_counter() - start:.0f} s in all)")
@@ -439,6 +440,9 @@ def build_parser():
         p.add_argument("--basis", default="humanoid", help="bundled basis name or .npz path")
         if name == "interpolate":
             p.add_argument("--steps", type=int, default=10, help="number of frames written, ends included")
+            p.add_argument("--no-anchor", action="store_true",
+                           help="write the geodesic as solved (by default the body's unmoving part is kept where "
+                                "the straight line between the ends puts it: the metric's L2 term lets it sink)")
             p.add_argument("-o", "--output", type=Path, required=True)
         p.add_argument("--json", action="store_true", help="print JSON")
         p.set_defaults(func=func)

@@ -78,6 +78,21 @@ def test_interpolate_keyframes_an_evenly_paced_geodesic_on_every_frame(scene, ti
     assert np.array_equal(frames2, frames) and np.allclose(codes2, codes)
 
 
+def test_interpolate_keep_body_planted_is_core_keyframe_path_with_anchor(scene, tiny):
+    from core.geodesic import geodesic, keyframe_path
+
+    basis = tiny[0]
+    t, f, h = basis.tensors()
+    registered("A", A), registered("B", B)
+    raw = geodesic(t, f, h, A, B, basis.weights, steps=scene.bareesa.steps, max_iter=scene.bareesa.geodesic_iterations)
+    for anchor in (True, False):
+        assert bpy.ops.bareesa.interpolate(object_a="A", object_b="B", anchor=anchor) == {"FINISHED"}
+        codes = keyed(bpy.data.objects["A_to_B"])[1]
+        assert np.allclose(codes, keyframe_path(t, f, h, raw.path, basis.weights, len(codes), anchor=anchor),
+                           atol=1e-5)
+        bpy.data.objects.remove(bpy.data.objects["A_to_B"])
+
+
 def test_interpolate_uses_selection_and_registers_a_raw_scan_end(scene, tiny):
     surface = tiny[2]
     a = registered("A", A)

@@ -138,6 +138,12 @@ def test_build_basis_then_distance_and_interpolate_on_registered_meshes(capsys, 
     assert np.abs(first - v).max() < 1e-8
     # the end code is the ridge-regularised projection (core.latent.PROJECTION_RIDGE): close, not exact
     assert np.abs(last - load_mesh(end)[0]).max() < 5e-3 * np.ptp(v, axis=0).max()
+    # --no-anchor writes the geodesic as solved: same ends (this basis spans no translation, so
+    # anchoring changes nothing either way)
+    rc, text, err = run(capsys, "interpolate", tmp / "template.ply", end, "--basis", out, "--steps", "5",
+                        "--no-anchor", "-o", tmp / "free")
+    assert rc == 0, err
+    assert np.allclose(np.load(tmp / "free" / "codes.npy"), codes, atol=1e-6)
     assert np.allclose(codes[-1], project_to_basis(basis, load_mesh(end)[0])[0])
 
 

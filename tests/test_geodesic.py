@@ -79,6 +79,87 @@ def test_bad_codes_raise_input_error():
         geodesic.geodesic(t, f, h, np.full(4, np.nan), np.ones(4), b.weights)
 
 
+def _limb_basis():
+    """A blob whose fields bend a 'limb' (the vertices with x > 0.5, under a third), push it
+    sideways and up (y, z) and lift the whole body (z): the basis spans the z translation only."""
+    v, f = synthetic.blob_mesh(3)
+    limb = (v[:, 0] > 0.5).astype(float)[:, None]
+    bend = limb * np.array([0.0, 0.0, 1.0]) * (v[:, :1] - 0.5)
+    push = limb * np.array([0.0, 1.0, 0.5])
+    lift = np.broadcast_to([0.0, 0.0, 1.0], v.shape)
+    b = latent.Basis(template=v, faces=f, fields=np.stack([bend, push, lift]), groups={}, weights="body")
+    return b, limb[:, 0] > 0
+
+
+def test_translation_codes_find_only_the_translations_a_basis_spans():
+    b, _ = _limb_basis()
+    axes, codes = geodesic.translation_codes(b.tensors()[2])
+    assert axes.tolist() == [2]
+    assert np.allclose(codes, [[0.0, 0.0, 1.0]], atol=1e-9)
+    axes, codes = geodesic.translation_codes(small_basis().tensors()[2])
+    assert axes.shape == (0,) and codes.shape == (0, 4)
+
+
+def test_anchor_path_removes_a_sinking_body_and_keeps_the_limb_motion():
+    b, limb = _limb_basis()
+    assert limb.mean() < 0.4
+    t, f, h = b.tensors()
+    line = geodesic.straight_path([0.0, 0.0, 0.0], [1.5, 0.0, 0.0], 7)
+    path = line.copy()
+    bump = np.sin(np.linspace(0, np.pi, 7))
+    path[:, 1] += 0.3 * bump   # the limb takes another way (what a geodesic does)...
+    path[:, 2] -= 0.05 * bump  # ...and the whole body sinks mid-path
+    out = geodesic.anchor_path(t, h, path, line)
+    assert np.array_equal(out[[0, -1]], path[[0, -1]])
+    assert np.allclose(out[:, :2], path[:, :2])  # the limb's own motion is kept
+    assert np.abs(out[:, 2] - line[:, 2]).max() < 1e-9  # the sinking is gone
+    body = ~limb
+    before = np.abs(geodesic.decode_path(t, h, path) - geodesic.decode_path(t, h, line))[:, body].max()
+    after = np.abs(geodesic.decode_path(t, h, out) - geodesic.decode_path(t, h, line))[:, body].max()
+    assert before > 0.04 and after < 1e-9
+    # an extrapolation keeps its two given frames and anchors every predicted one, the last included
+    ahead = geodesic.anchor_path(t, h, path[3:], line[3:], fixed=(0, 1))
+    assert np.array_equal(ahead[:2], path[3:5])
+    assert np.abs(ahead[2:, 2] - line[5:, 2]).max() < 1e-9 and np.allclose(ahead[:, :2], path[3:, :2])
+
+
+def test_anchor_path_leaves_a_basis_without_translations_alone_and_checks_shapes():
+    b = small_basis()
+    t, f, h = b.tensors()
+    path = geodesic.straight_path(np.zeros(4), np.ones(4), 5)
+    bent = path + 0.1 * np.sin(np.linspace(0, np.pi, 5))[:, None]
+    assert np.array_equal(geodesic.anchor_path(t, h, bent, path), bent)
+    with pytest.raises(InputError, match="same shape"):
+        geodesic.anchor_path(t, h, bent, path[:4])
+
+
+def test_keyframe_path_anchors_then_paces_evenly():
+    b, _ = _limb_basis()
+    t, f, h = b.tensors()
+    line = geodesic.straight_path([0.0, 0.0, 0.0], [1.5, 0.0, 0.0], 7)
+    path = line + np.sin(np.linspace(0, np.pi, 7))[:, None] * np.array([0.0, 0.3, -0.05])
+    out = geodesic.keyframe_path(t, f, h, path, b.weights, 5)
+    assert np.allclose(out, geodesic.resample_path(t, f, h, geodesic.anchor_path(t, h, path, line), b.weights, 5))
+    free = geodesic.keyframe_path(t, f, h, path, b.weights, 5, anchor=False)
+    assert np.allclose(free, geodesic.resample_path(t, f, h, path, b.weights, 5))
+    assert np.abs(free - out)[1:-1, 2].max() > 0.01
+
+
+def test_anchored_geodesic_of_the_bundled_humanoid_keeps_the_feet_on_the_floor():
+    """Rest -> both arms up: the geodesic as solved sinks the whole body (~3 cm), the anchored one does not."""
+    b = latent.load_basis("humanoid")
+    t, f, h = b.tensors()
+    protos = b.extras["pose_prototypes"]
+    up = protos[np.argmax(geodesic.decode_path(t, h, protos)[:, :, 2].max(1))]
+    rest = np.zeros(b.n_fields)
+    g = geodesic.geodesic(t, f, h, rest, up, b.weights, steps=5, metric=b.template_metric())
+    line = geodesic.straight_path(rest, up, 5)
+    feet = b.template[:, 2] < b.template[:, 2].min() + 0.05
+    sink = lambda path: np.abs(geodesic.decode_path(t, h, path)[:, feet] - geodesic.decode_path(t, h, line)[:, feet])  # noqa: E731
+    assert sink(g.path).max() > 0.01
+    assert sink(geodesic.anchor_path(t, h, g.path, line)).max() < 0.005
+
+
 def test_symmetric_matching_of_two_raw_scans_recovers_codes_and_geodesic():
     basis, surface = synthetic.smooth_sphere_basis(subdivisions=2, n_fields=6, seed=0)
     rng = np.random.default_rng(2)

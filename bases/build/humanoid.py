@@ -541,11 +541,11 @@ class Generator:
             raise RuntimeError("a body type changed the topology")
         return verts, self.faces
 
-    def motion(self, params, motion):
-        """Baked sequence (T, N, 3) of a body type performing a motion."""
+    def motion(self, params, motion, step=BAKE_STEP):
+        """Baked sequence (T, N, 3) of a body type performing a motion, a mesh every ``step`` frames."""
         body, rig = rigged_body("body", self.reshaper(params), self.polys, skeleton(params), self.weights)
         keyframe_motion(rig, motion)
-        seq = bake(body, range(1, FRAMES + 2, BAKE_STEP))
+        seq = bake(body, range(1, FRAMES + 2, step))
         action = rig.animation_data.action
         self._remove(body, rig)
         bpy.data.actions.remove(action)
