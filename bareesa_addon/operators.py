@@ -396,6 +396,9 @@ class BAREESA_OT_extrapolate(SolveOperator, bpy.types.Operator):
     object_a: StringProperty(name="From", default="")
     object_b: StringProperty(name="To", default="")
 
+    anchor: BoolProperty(name="Keep Body Planted", default=True,
+                         description="Keep the body's unmoving part where the straight latent line puts it")
+
     def prepare(self, context):
         s = settings(context)
         mode = self.source
@@ -434,10 +437,12 @@ class BAREESA_OT_extrapolate(SolveOperator, bpy.types.Operator):
         weights, device, n_new = metric(context, basis), solver_device(context), s.extrapolate_steps
         shooting = solver.module("shooting")
 
+        anchor = self.anchor
+
         def solve(callback, cancel):
             template, faces, fields = basis.tensors(device=device)
             return shooting.extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new,
-                                        callback=callback, cancel=cancel)
+                                        callback=callback, cancel=cancel, anchor=anchor)
 
         def apply(context, path):
             cv.check_code(path, "the extrapolated motion")

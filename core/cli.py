@@ -236,7 +236,7 @@ def cmd_extrapolate(args):
     basis = load_basis(args.basis)
     a0, a1 = _code_of(basis, args.a), _code_of(basis, args.b)
     t, f, h = basis.tensors()
-    path = extrapolate(t, f, h, a0, a1, basis.weights, args.steps)
+    path = extrapolate(t, f, h, a0, a1, basis.weights, args.steps, anchor=not args.no_anchor)
     _write_frames(args.output, basis, path)
     _print({"frames": len(path), "seconds": time.perf_counter() - start, "output": str(args.output)},
            args.json, "geodesic extrapolation (frames 0 and 1 are the inputs)")
@@ -452,6 +452,9 @@ def build_parser():
     p.add_argument("b", type=Path)
     p.add_argument("--basis", default="humanoid", help="bundled basis name or .npz path")
     p.add_argument("--steps", type=int, default=10, help="number of new frames")
+    p.add_argument("--no-anchor", action="store_true",
+                   help="write the geodesic as shot (by default the body's unmoving part is kept where the "
+                        "straight latent line puts it)")
     p.add_argument("-o", "--output", type=Path, required=True)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_extrapolate)

@@ -229,7 +229,7 @@ def geodesic_step(template, faces, fields, alpha0, alpha1, weights, tol=STEP_TOL
 
 
 def extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new, callback=None, cancel=None,
-                tol=STEP_TOL, substeps=1):
+                tol=STEP_TOL, substeps=1, anchor=False):
     """Continue the discrete geodesic through alpha^0, alpha^1 by n_new steps: -> (n_new + 2, P).
 
     template (N, 3), faces (F, 3), fields (P, N, 3) torch tensors; codes (P,). The
@@ -238,7 +238,9 @@ def extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new, callbac
     substeps > 1 refines time: the boundary value geodesic alpha^0 -> alpha^1 with
     substeps intervals is continued by n_new * substeps steps, and every substeps-th
     point is returned (strongly curved motions need it: a step that does not
-    converge raises ShootingFailed).
+    converge raises ShootingFailed). anchor: keep the body's unmoving part where the
+    straight latent line alpha^0 + k (alpha^1 - alpha^0) puts it (``geodesic.anchor_path``;
+    the predicted frames only).
     """
     p = fields.shape[0]
     try:
@@ -269,7 +271,13 @@ def extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new, callbac
         x, c = stepper.step(path[-2], path[-1], guess, c)
         path.append(x)
     monitor.report(1.0, "done")
-    return np.stack([codes["alpha0"], codes["alpha1"]] + path[1 + substeps::substeps])
+    out = np.stack([codes["alpha0"], codes["alpha1"]] + path[1 + substeps::substeps])
+    if anchor:
+        from .geodesic import anchor_path
+
+        line = out[0] + np.arange(len(out))[:, None] * (out[1] - out[0])
+        out = anchor_path(template, fields, out, line, fixed=(0, 1))
+    return out
 
 
 def shoot(template, faces, fields, alpha0, velocity, weights, steps=10, callback=None, cancel=None):

@@ -52,6 +52,21 @@ def test_extrapolate_keeps_given_frames_and_appends_new_ones():
         assert np.abs(step - path[k]).max() < 1e-8
 
 
+def test_anchored_extrapolation_keeps_the_unmoving_body_on_the_straight_line():
+    from tests.test_geodesic import _limb_basis
+
+    b, limb = _limb_basis()
+    t, f, h = b.tensors()
+    a0, a1 = np.zeros(3), np.array([0.3, 0.1, 0.0])
+    free = shooting.extrapolate(t, f, h, a0, a1, b.weights, n_new=3)
+    out = shooting.extrapolate(t, f, h, a0, a1, b.weights, n_new=3, anchor=True)
+    line = a0 + np.arange(5)[:, None] * (a1 - a0)
+    assert np.allclose(out, geodesic.anchor_path(t, h, free, line, fixed=(0, 1)))
+    assert np.array_equal(out[:2], free[:2]) and np.allclose(out[:, :2], free[:, :2])
+    body = geodesic.decode_path(t, h, out)[:, ~limb] - geodesic.decode_path(t, h, line)[:, ~limb]
+    assert np.abs(body).max() < 1e-9
+
+
 def test_cancelled_extrapolation_raises_and_returns_nothing():
     b = small_basis()
     t, f, h = b.tensors()
