@@ -395,7 +395,6 @@ class BAREESA_OT_extrapolate(SolveOperator, bpy.types.Operator):
         default="AUTO")
     object_a: StringProperty(name="From", default="")
     object_b: StringProperty(name="To", default="")
-
     anchor: BoolProperty(name="Keep Body Planted", default=True,
                          description="Keep the body's unmoving part where the straight latent line puts it")
 
@@ -436,7 +435,6 @@ class BAREESA_OT_extrapolate(SolveOperator, bpy.types.Operator):
             label = obj.name
         weights, device, n_new = metric(context, basis), solver_device(context), s.extrapolate_steps
         shooting = solver.module("shooting")
-
         anchor = self.anchor
 
         def solve(callback, cancel):

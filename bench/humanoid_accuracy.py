@@ -126,15 +126,15 @@ def interpolation_rows(basis, seqs, halves=(5, 10), stride=6):
     each half span h (frames) and start k (every ``stride`` frames): interpolation k -> k + 2h,
     compared with the true frames at a quarter, half and three quarters of the way; from the
     mini-sequence's first frame a (as the paper, which starts from the first two meshes),
-    extrapolation from (a, a + h) to a + 2h and a + 3h where they lie in the mini-sequence. Endpoint codes are projections of the true frames
-    (``project_to_basis``); the vertex baselines use the true frames themselves. "H2 anchored"
-    is the geodesic with the body's unmoving part kept in place (``core.geodesic.anchor_path``,
-    what the CLI and the add-on output). A shot that does not converge is counted and left out
-    for every method.
+    extrapolation from (a, a + h) to a + 2h and a + 3h where they lie in the mini-sequence.
+    Endpoint codes are projections of the true frames (``project_to_basis``); the vertex
+    baselines use the true frames themselves. "H2 anchored" is the geodesic with the body's
+    unmoving part kept in place (``core.geodesic.anchor_path``, what the CLI and the add-on
+    output). A shot that does not converge is counted and left out for every method.
     """
     from core.geodesic import anchor_path, decode_path, geodesic, straight_path
     from core.latent import project_to_basis
-    from core.shooting import ShootingFailed, extrapolate
+    from core.shooting import ShootingFailed, anchor_extrapolation, extrapolate
 
     t, f, h = basis.tensors()
     faces = basis.faces
@@ -166,25 +166,27 @@ def interpolation_rows(basis, seqs, halves=(5, 10), stride=6):
                     print(f"    interpolation {k} -> {k + 2 * half}: " + ", ".join(
                         f"{m} {1e3 * out[('interpolation', half)][m][-1][1]:.1f}" for m in methods) + " mm Chamfer",
                         flush=True)
-                for k in range(a, b - 2 * half + 1)[:1]:
-                    targets = [m for m in (k + 2 * half, k + 3 * half) if m <= b]
-                    try:
-                        ex = extrapolate(t, f, h, codes[k], codes[k + half], basis.weights, len(targets),
-                                         substeps=min(half, 5))
-                    except ShootingFailed as err:
-                        failures.append(f"{key}/k{k}/h{half}: {err}")
-                        continue
-                    steps = np.arange(len(targets) + 2)[:, None]
-                    line = codes[k] + steps * (codes[k + half] - codes[k])
-                    blend = seq[k] + steps[:, :, None] * (seq[k + half] - seq[k])
-                    paths = (decode(ex), decode(anchor_path(t, h, ex, line, fixed=(0, 1))), decode(line), blend)
-                    for name, path in zip(methods, paths):
-                        d = np.mean([_distances(path[2 + i], seq[m], faces, sigma) for i, m in enumerate(targets)],
-                                    axis=0)
-                        out[("extrapolation", half)][name].append(d)
-                    print(f"    extrapolation {k}, {k + half} -> {targets}: " + ", ".join(
-                        f"{m} {1e3 * out[('extrapolation', half)][m][-1][1]:.1f}" for m in methods) + " mm Chamfer",
-                        flush=True)
+                if b - a < 2 * half:
+                    continue
+                k = a
+                targets = [m for m in (k + 2 * half, k + 3 * half) if m <= b]
+                try:
+                    ex = extrapolate(t, f, h, codes[k], codes[k + half], basis.weights, len(targets),
+                                     substeps=min(half, 5))
+                except ShootingFailed as err:
+                    failures.append(f"{key}/k{k}/h{half}: {err}")
+                    continue
+                steps = np.arange(len(targets) + 2)[:, None]
+                line = codes[k] + steps * (codes[k + half] - codes[k])
+                blend = seq[k] + steps[:, :, None] * (seq[k + half] - seq[k])
+                paths = (decode(ex), decode(anchor_extrapolation(t, h, ex)), decode(line), blend)
+                for name, path in zip(methods, paths):
+                    d = np.mean([_distances(path[2 + i], seq[m], faces, sigma) for i, m in enumerate(targets)],
+                                axis=0)
+                    out[("extrapolation", half)][name].append(d)
+                print(f"    extrapolation {k}, {k + half} -> {targets}: " + ", ".join(
+                    f"{m} {1e3 * out[('extrapolation', half)][m][-1][1]:.1f}" for m in methods) + " mm Chamfer",
+                    flush=True)
     rows = []
     for (task, half), per_method in out.items():
         for name, ds in per_method.items():

@@ -272,12 +272,17 @@ def extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new, callbac
         path.append(x)
     monitor.report(1.0, "done")
     out = np.stack([codes["alpha0"], codes["alpha1"]] + path[1 + substeps::substeps])
-    if anchor:
-        from .geodesic import anchor_path
+    return anchor_extrapolation(template, fields, out) if anchor else out
 
-        line = out[0] + np.arange(len(out))[:, None] * (out[1] - out[0])
-        out = anchor_path(template, fields, out, line, fixed=(0, 1))
-    return out
+
+def anchor_extrapolation(template, fields, path):
+    """An extrapolated path (T, P) with its predicted frames anchored (``geodesic.anchor_path``)
+    to the straight latent line alpha^0 + k (alpha^1 - alpha^0) through its two given frames."""
+    from .geodesic import anchor_path
+
+    path = np.asarray(path, dtype=np.float64)
+    line = path[0] + np.arange(len(path))[:, None] * (path[1] - path[0])
+    return anchor_path(template, fields, path, line, fixed=(0, 1))
 
 
 def shoot(template, faces, fields, alpha0, velocity, weights, steps=10, callback=None, cancel=None):
