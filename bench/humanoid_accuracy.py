@@ -130,15 +130,20 @@ def interpolation_rows(basis, seqs, halves=(5, 10), stride=6):
     Endpoint codes are projections of the true frames (``project_to_basis``); the vertex
     baselines use the true frames themselves. "H2 anchored" is the geodesic with the body's
     unmoving part kept in place (``core.geodesic.anchor_path``, what the CLI and the add-on
-    output). A shot that does not converge is counted and left out for every method.
+    output); "+ detail" also carries the end frames' off-basis detail (``core.latent.detail_along``,
+    what the CLI writes for template-topology inputs), so it passes through the true end frames
+    as the vertex blend does: the latent line plus the same detail IS the vertex blend (F is
+    affine; checked below), so that pair differs only in the path between the same ends.
+    Rows per half span, and "all": the mean over every window of the task. A shot that does not
+    converge is counted and left out for every method.
     """
     from core.geodesic import anchor_path, decode_path, geodesic, straight_path
-    from core.latent import project_to_basis
+    from core.latent import detail_along, off_basis_detail, project_to_basis
     from core.shooting import ShootingFailed, anchor_extrapolation, extrapolate
 
     t, f, h = basis.tensors()
     faces = basis.faces
-    methods = ("H2 geodesic", "H2 anchored", "latent line", "vertex blend")
+    methods = ("H2 geodesic", "H2 anchored", "H2 anchored + detail", "latent line", "vertex blend")
     out = {(task, hf): {m: [] for m in methods} for task in ("interpolation", "extrapolation") for hf in halves}
     failures = []
     decode = lambda path: decode_path(t, h, path)  # noqa: E731
@@ -149,6 +154,7 @@ def interpolation_rows(basis, seqs, halves=(5, 10), stride=6):
               flush=True)
         sigma = 0.025 * float(seq[0][:, 2].max() - seq[0][:, 2].min())
         codes = project_to_basis(basis, seq)[0]
+        detail = off_basis_detail(basis, seq, codes)
         for half in halves:
             for a, b in segments:
                 for k in range(a, b - 2 * half + 1, stride):
@@ -158,7 +164,10 @@ def interpolation_rows(basis, seqs, halves=(5, 10), stride=6):
                                  metric=basis.template_metric()).path
                     lam = np.linspace(0, 1, n)[:, None, None]
                     blend = (1 - lam) * seq[k] + lam * seq[k + 2 * half]
-                    paths = (decode(g), decode(anchor_path(t, h, g, line)), decode(line), blend)
+                    carried = detail_along(detail[k], detail[k + 2 * half], lam)
+                    anchored = decode(anchor_path(t, h, g, line))
+                    paths = (decode(g), anchored, anchored + carried, decode(line), blend)
+                    assert np.allclose(decode(line) + carried, blend, atol=1e-9)
                     probe = sorted({round(q * 2 * half) for q in (0.25, 0.5, 0.75)})
                     for name, path in zip(methods, paths):
                         d = np.mean([_distances(path[j], seq[k + j], faces, sigma) for j in probe], axis=0)
@@ -179,7 +188,9 @@ def interpolation_rows(basis, seqs, halves=(5, 10), stride=6):
                 steps = np.arange(len(targets) + 2)[:, None]
                 line = codes[k] + steps * (codes[k + half] - codes[k])
                 blend = seq[k] + steps[:, :, None] * (seq[k + half] - seq[k])
-                paths = (decode(ex), decode(anchor_extrapolation(t, h, ex)), decode(line), blend)
+                anchored = decode(anchor_extrapolation(t, h, ex))
+                carried = detail_along(detail[k], detail[k + half], steps)
+                paths = (decode(ex), anchored, anchored + carried, decode(line), blend)
                 for name, path in zip(methods, paths):
                     d = np.mean([_distances(path[2 + i], seq[m], faces, sigma) for i, m in enumerate(targets)],
                                 axis=0)
@@ -187,6 +198,8 @@ def interpolation_rows(basis, seqs, halves=(5, 10), stride=6):
                 print(f"    extrapolation {k}, {k + half} -> {targets}: " + ", ".join(
                     f"{m} {1e3 * out[('extrapolation', half)][m][-1][1]:.1f}" for m in methods) + " mm Chamfer",
                     flush=True)
+    for task in ("interpolation", "extrapolation"):
+        out[(task, "all")] = {m: [d for hf in halves for d in out[(task, hf)][m]] for m in methods}
     rows = []
     for (task, half), per_method in out.items():
         for name, ds in per_method.items():

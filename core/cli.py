@@ -143,20 +143,33 @@ def cmd_build_basis(args):
     _print(rows, False, f"wrote {args.output} ({basis.n_fields} fields)")
 
 
-def _codes(basis, paths, callback=None):
-    """Codes of meshes: projection for template-topology meshes, registration for raw scans."""
-    from .latent import project_to_basis
+def _load_input(basis, path):
+    """A mesh as given (validated) and whether it is in the basis' template topology: (v, f, registered)."""
     from .mesh import load_mesh, validate_mesh
 
-    meshes = [load_mesh(p) for p in paths]
-    for p, (v, f) in zip(paths, meshes):
-        validate_mesh(v, f, name=str(p))
-    registered = [v.shape == basis.template.shape and np.array_equal(f, basis.faces) for v, f in meshes]
-    if all(registered):
-        return [project_to_basis(basis, v)[0] for v, _ in meshes], None
+    v, f = load_mesh(path)
+    validate_mesh(v, f, name=str(path))
+    return v, f, v.shape == basis.template.shape and np.array_equal(f, basis.faces)
+
+
+def _projected(basis, v):
+    """Code of a template-topology mesh and its off-basis detail (what the code misses)."""
+    from .latent import off_basis_detail, project_to_basis
+
+    code = project_to_basis(basis, v)[0]
+    return code, off_basis_detail(basis, v, code)
+
+
+def _codes(basis, paths, callback=None):
+    """Two meshes: (codes, details, None) by projection if both are in template topology,
+    else (None, None, the symmetric match of the raw scans)."""
+    meshes = [_load_input(basis, p) for p in paths]
+    if all(registered for _, _, registered in meshes):
+        codes, details = zip(*(_projected(basis, v) for v, _, _ in meshes))
+        return list(codes), list(details), None
     from .geodesic import symmetric_match
 
-    return None, symmetric_match(basis, meshes[0], meshes[1], callback=callback)
+    return None, None, symmetric_match(basis, meshes[0][:2], meshes[1][:2], callback=callback)
 
 
 def _geodesic_between(args):
@@ -168,19 +181,37 @@ def _geodesic_between(args):
     start = time.perf_counter()
     basis = load_basis(args.basis)
     t, f, h = basis.tensors()
-    codes, matched = _codes(basis, [args.a, args.b])
+    codes, details, matched = _codes(basis, [args.a, args.b])
     if matched is not None:
-        return basis, matched.path, matched.distance, time.perf_counter() - start
+        return basis, matched.path, matched.distance, time.perf_counter() - start, None
     g = geodesic(t, f, h, codes[0], codes[1], basis.weights, steps=max(args.steps, 3),
                  metric=basis.template_metric())
-    return basis, g.path, g.distance, time.perf_counter() - start
+    return basis, g.path, g.distance, time.perf_counter() - start, details
 
 
 def cmd_distance(args):
     """Geodesic distance between two meshes in the latent space of a basis."""
     args.steps = 10
-    _, _, distance, seconds = _geodesic_between(args)
+    _, _, distance, seconds, _ = _geodesic_between(args)
     _print({"distance": distance, "seconds": seconds}, args.json)
+
+
+def _keyframe_detail(args, details, times):
+    """Off-basis detail of the two input meshes along the output frames (``detail_along``), or None
+    when an input is a raw scan (no detail to keep) or --no-detail."""
+    from .latent import detail_along
+
+    if details is None or any(d is None for d in details) or args.no_detail:
+        return None
+    return detail_along(details[0], details[1], times)
+
+
+def _detail_report(details, detail):
+    """RMS off-basis detail of the inputs (what the basis misses) and whether the frames keep it."""
+    if details is None or any(d is None for d in details):
+        return {}
+    rms = float(np.sqrt(np.mean([np.sum(d ** 2, axis=1).mean() for d in details])))
+    return {"off_basis_rms": rms, "detail_kept": detail is not None}
 
 
 def cmd_interpolate(args):
@@ -189,36 +220,39 @@ def cmd_interpolate(args):
 
     if args.steps < 2:
         raise InputError(f"--steps must be at least 2, got {args.steps}")
-    basis, path, distance, seconds = _geodesic_between(args)
+    basis, path, distance, seconds, details = _geodesic_between(args)
     t, f, h = basis.tensors()
-    _write_frames(args.output, basis, keyframe_path(t, f, h, path, basis.weights, args.steps,
-                                                    anchor=not args.no_anchor))
-    result = {"distance": distance, "seconds": seconds, "frames": args.steps, "output": str(args.output)}
+    codes = keyframe_path(t, f, h, path, basis.weights, args.steps, anchor=not args.no_anchor)
+    detail = _keyframe_detail(args, details, np.linspace(0.0, 1.0, len(codes)))
+    _write_frames(args.output, basis, codes, detail=detail)
+    result = {"distance": distance, "seconds": seconds, "frames": args.steps, "output": str(args.output),
+              **_detail_report(details, detail)}
     _print(result, args.json, "geodesic interpolation")
 
 
-def _code_of(basis, path, monitor_desc=None):
-    """Code of one mesh: projection if it is in template topology, else registration of the scan."""
-    from .latent import project_to_basis
-    from .mesh import load_mesh, validate_mesh
-
-    v, f = load_mesh(path)
-    validate_mesh(v, f, name=str(path))
-    if v.shape == basis.template.shape and np.array_equal(f, basis.faces):
-        return project_to_basis(basis, v)[0]
+def _code_of(basis, path):
+    """Code of one mesh and its off-basis detail: projection if it is in template topology, else
+    registration of the scan (detail None)."""
+    v, f, registered = _load_input(basis, path)
+    if registered:
+        return _projected(basis, v)
     from .registration import register
 
-    return register(basis, v, f).code
+    return register(basis, v, f).code, None
 
 
-def _write_frames(output, basis, codes, prefix="frame"):
+def _write_frames(output, basis, codes, prefix="frame", detail=None):
+    """Frames F(codes) (+ detail (T, N, 3) if given) as PLY meshes, and codes.npy."""
     from .geodesic import decode_path
     from .mesh import save_mesh
 
     t, _, h = basis.tensors()
     output.mkdir(parents=True, exist_ok=True)
     width = len(str(len(codes) - 1))
-    for k, v in enumerate(decode_path(t, h, codes)):
+    frames = decode_path(t, h, codes)
+    if detail is not None:
+        frames = frames + detail
+    for k, v in enumerate(frames):
         save_mesh(output / f"{prefix}_{k:0{width}d}.ply", v, basis.faces)
     np.save(output / "codes.npy", np.asarray(codes))
 
@@ -234,12 +268,13 @@ def cmd_extrapolate(args):
         raise InputError(f"--steps must be at least 1, got {args.steps}")
     start = time.perf_counter()
     basis = load_basis(args.basis)
-    a0, a1 = _code_of(basis, args.a), _code_of(basis, args.b)
+    (a0, d0), (a1, d1) = _code_of(basis, args.a), _code_of(basis, args.b)
     t, f, h = basis.tensors()
     path = extrapolate(t, f, h, a0, a1, basis.weights, args.steps, anchor=not args.no_anchor)
-    _write_frames(args.output, basis, path)
-    _print({"frames": len(path), "seconds": time.perf_counter() - start, "output": str(args.output)},
-           args.json, "geodesic extrapolation (frames 0 and 1 are the inputs)")
+    detail = _keyframe_detail(args, [d0, d1], np.arange(len(path)))
+    _write_frames(args.output, basis, path, detail=detail)
+    _print({"frames": len(path), "seconds": time.perf_counter() - start, "output": str(args.output),
+            **_detail_report([d0, d1], detail)}, args.json, "geodesic extrapolation (frames 0 and 1 are the inputs)")
 
 
 def cmd_transfer(args):
@@ -248,8 +283,8 @@ def cmd_transfer(args):
     from .statistics import transfer_motion
 
     basis = load_basis(args.basis)
-    codes = np.stack([_code_of(basis, p) for p in args.frames])
-    identity = _code_of(basis, args.identity)
+    codes = np.stack([_code_of(basis, p)[0] for p in args.frames])
+    identity = _code_of(basis, args.identity)[0]
     out = transfer_motion(codes, identity, basis.group_slice(args.group))
     _write_frames(args.output, basis, out)
     _print({"frames": len(out), "output": str(args.output)}, args.json, "motion transfer")
@@ -265,7 +300,7 @@ def cmd_sample(args):
     basis = load_basis(args.basis)
     t, f, h = basis.tensors()
     if args.fit:
-        codes = np.stack([_code_of(basis, p) for p in args.fit])
+        codes = np.stack([_code_of(basis, p)[0] for p in args.fit])
         vel = log_map(t, f, h, codes, basis.weights)
         dist = fit_distribution(vel, basis.groups, {g: args.components for g in basis.groups}, seed=args.seed)
     else:
@@ -443,6 +478,10 @@ def build_parser():
             p.add_argument("--no-anchor", action="store_true",
                            help="write the geodesic as solved (by default the body's unmoving part is kept where "
                                 "the straight line between the ends puts it: the metric's L2 term lets it sink)")
+            p.add_argument("--no-detail", action="store_true",
+                           help="write F(code) only: by default, when both inputs are in template topology, what "
+                                "their codes miss (off-basis detail) is carried along so the frames pass through "
+                                "the inputs exactly")
             p.add_argument("-o", "--output", type=Path, required=True)
         p.add_argument("--json", action="store_true", help="print JSON")
         p.set_defaults(func=func)
@@ -455,6 +494,9 @@ def build_parser():
     p.add_argument("--no-anchor", action="store_true",
                    help="write the geodesic as shot (by default the body's unmoving part is kept where the "
                         "straight latent line puts it)")
+    p.add_argument("--no-detail", action="store_true",
+                   help="write F(code) only: by default, when both inputs are in template topology, what their "
+                        "codes miss (off-basis detail) is continued linearly, as the latent line is")
     p.add_argument("-o", "--output", type=Path, required=True)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_extrapolate)

@@ -379,3 +379,33 @@ def project_to_basis(basis, verts, ridge=PROJECTION_RIDGE):
     if verts.ndim == 2:
         return alpha[:, 0], float(residual[0])
     return alpha.T, residual
+
+
+def off_basis_detail(basis, verts, code):
+    """What a template-topology mesh has that its code does not: verts - F(code).
+
+    verts (N, 3) and code (P,), or batches (M, N, 3) and (M, P) -> numpy of the shape of verts.
+    Adding it back to F(code) gives the mesh exactly (``detail_along``).
+    """
+    verts, code = np.asarray(verts, dtype=np.float64), np.asarray(code, dtype=np.float64)
+    if verts.shape[-2:] != basis.template.shape:
+        raise InputError(f"mesh has {verts.shape[-2] if verts.ndim >= 2 else 0} vertices but basis "
+                         f"'{basis.name}' has {basis.template.shape[0]}")
+    if code.shape[-1] != basis.n_fields or code.shape[:-1] != verts.shape[:-2]:
+        raise InputError(f"codes {code.shape} do not match meshes {verts.shape} of a {basis.n_fields}-field basis")
+    return verts - basis.template - np.tensordot(code, basis.fields, axes=([-1], [0]))
+
+
+def detail_along(start, end, times):
+    """Off-basis detail of two keyframes carried along a path: start + t (end - start) for t in times.
+
+    start, end (N, 3) ``off_basis_detail`` of the keyframes; times (T,): 0 and 1 at the keyframes,
+    in between for interpolation, 2, 3, ... to continue it (extrapolation) -> (T, N, 3).
+    Added to a latent path's decoded frames, it makes them pass through the keyframes exactly; added
+    to the straight latent line, it gives exactly the vertex blend of the keyframes (F is affine).
+    """
+    start, end = np.asarray(start, dtype=np.float64), np.asarray(end, dtype=np.float64)
+    if start.shape != end.shape or start.ndim != 2:
+        raise InputError(f"detail of the two keyframes must be two (N, 3) arrays, got {start.shape}, {end.shape}")
+    times = np.asarray(times, dtype=np.float64)
+    return start + times.reshape(-1, 1, 1) * (end - start)

@@ -214,6 +214,50 @@ def test_extrapolate_and_transfer_on_registered_meshes(capsys, built):
         assert np.allclose(moved[k, basis.group_slice("pose")], pose[basis.group_slice("pose")])
 
 
+def test_interpolate_and_extrapolate_keep_the_inputs_off_basis_detail(capsys, built):
+    from core.latent import load_basis
+    from core.mesh import load_mesh
+
+    tmp, out, seqs = built
+    basis = load_basis(out)
+    rng = np.random.default_rng(5)
+    inputs = []
+    for k in (0, 1):  # registered meshes with detail the basis cannot express (a random bump each)
+        v = load_mesh(seqs["bend"][k])[0] + 0.01 * rng.normal(size=basis.template.shape)
+        save_mesh(tmp / f"detailed_{k}.ply", v, basis.faces)
+        inputs.append(v)
+
+    def frames(folder):
+        return np.stack([load_mesh(p)[0] for p in sorted((tmp / folder).glob("frame_*.ply"))])
+
+    def decoded(folder):
+        return basis.template + np.tensordot(np.load(tmp / folder / "codes.npy"), basis.fields, axes=1)
+
+    a, b = tmp / "detailed_0.ply", tmp / "detailed_1.ply"
+    rc, text, err = run(capsys, "interpolate", a, b, "--basis", out, "--steps", "5", "-o", tmp / "kept", "--json")
+    assert rc == 0, err
+    res = json.loads(text)
+    assert res["detail_kept"] and 0.005 < res["off_basis_rms"] < 0.05
+    kept = frames("kept")
+    assert np.abs(kept[0] - inputs[0]).max() < 1e-8 and np.abs(kept[-1] - inputs[1]).max() < 1e-8
+    gap = kept - decoded("kept")  # the detail, blended linearly from one input's to the other's
+    assert np.allclose(gap[2], (gap[0] + gap[-1]) / 2, atol=1e-8)
+    rc, text, err = run(capsys, "interpolate", a, b, "--basis", out, "--steps", "5", "--no-detail",
+                        "-o", tmp / "bare", "--json")
+    assert rc == 0, err
+    assert not json.loads(text)["detail_kept"]
+    bare = frames("bare")
+    assert np.allclose(bare, decoded("bare"), atol=1e-8)
+    assert np.abs(bare[-1] - inputs[1]).max() > 0.02  # F(code) alone misses the bump
+    rc, text, err = run(capsys, "extrapolate", a, b, "--basis", out, "--steps", "2", "-o", tmp / "ex", "--json")
+    assert rc == 0, err
+    ex = frames("ex")
+    assert len(ex) == 4 and json.loads(text)["detail_kept"]
+    assert np.abs(ex[0] - inputs[0]).max() < 1e-8 and np.abs(ex[1] - inputs[1]).max() < 1e-8
+    gap = ex - decoded("ex")  # continued linearly, as the straight latent line would be
+    assert np.allclose(gap[3], gap[0] + 3 * (gap[1] - gap[0]), atol=1e-8)
+
+
 def test_simulate_scan_writes_a_differently_meshed_scan(capsys, meshes, tmp_path):
     from core.mesh import load_mesh
 

@@ -189,3 +189,33 @@ def test_projection_ridge_keeps_rough_tiny_directions_small_and_the_fit_close():
         project_to_basis(basis, exact, ridge=-1.0)
     with pytest.raises(InputError, match="NaN"):
         project_to_basis(basis, np.full_like(exact, np.nan))
+
+
+def test_off_basis_detail_carried_along_reproduces_the_keyframes_and_the_vertex_blend():
+    from core.latent import detail_along, off_basis_detail, project_to_basis
+
+    b = small_basis()
+    t, _, h = b.tensors()
+    rng = np.random.default_rng(2)
+    # two meshes off the span of the basis: codes miss a random bump each
+    alpha = np.array([[0.3, -0.5, 0.2, 0.4], [-0.2, 0.6, 0.1, -0.3]])
+    meshes = b.template + np.tensordot(alpha, b.fields, axes=1) + 0.02 * rng.normal(size=(2, *b.template.shape))
+    codes = project_to_basis(b, meshes)[0]
+    detail = off_basis_detail(b, meshes, codes)
+    assert detail.shape == meshes.shape and np.sqrt((detail ** 2).sum(-1).mean()) > 0.01
+    decoded = latent.decode(t, h, torch.as_tensor(codes)).numpy()
+    assert np.allclose(decoded + detail, meshes, atol=1e-12)  # F(code) + detail is the mesh
+    assert np.allclose(off_basis_detail(b, meshes[1], codes[1]), detail[1])  # one mesh as in the batch
+    # along the straight latent line, interpolating (0..1) and continuing (2, 3), the carried
+    # detail turns F into exactly the vertex blend of the two meshes
+    times = np.array([0.0, 0.25, 0.5, 1.0, 2.0, 3.0])
+    line = codes[0] + times[:, None] * (codes[1] - codes[0])
+    frames = latent.decode(t, h, torch.as_tensor(line)).numpy() + detail_along(detail[0], detail[1], times)
+    blend = meshes[0] + times[:, None, None] * (meshes[1] - meshes[0])
+    assert np.allclose(frames, blend, atol=1e-12)
+    with pytest.raises(InputError, match="vertices"):
+        off_basis_detail(b, meshes[0][:-1], codes[0])
+    with pytest.raises(InputError, match="do not match"):
+        off_basis_detail(b, meshes, codes[0])
+    with pytest.raises(InputError, match="two"):
+        detail_along(detail[0], detail[1][:-1], times)
