@@ -78,19 +78,38 @@ def test_interpolate_keyframes_an_evenly_paced_geodesic_on_every_frame(scene, ti
     assert np.array_equal(frames2, frames) and np.allclose(codes2, codes)
 
 
-def test_interpolate_keep_body_planted_is_core_keyframe_path_with_anchor(scene, tiny):
+def anchor_spy(monkeypatch, module, name):
+    """Record the ``anchor`` argument of core.<module>.<name> on every call: -> the list of values."""
+    import importlib
+
+    mod = importlib.import_module(f"core.{module}")
+    real, seen = getattr(mod, name), []
+
+    def spy(*args, anchor=False, **kwargs):
+        seen.append(anchor)
+        return real(*args, anchor=anchor, **kwargs)
+
+    monkeypatch.setattr(mod, name, spy)
+    return seen
+
+
+def test_interpolate_keep_body_planted_is_core_keyframe_path_with_anchor(scene, tiny, monkeypatch):
     from core.geodesic import geodesic, keyframe_path
 
     basis = tiny[0]
     t, f, h = basis.tensors()
     registered("A", A), registered("B", B)
     raw = geodesic(t, f, h, A, B, basis.weights, steps=scene.bareesa.steps, max_iter=scene.bareesa.geodesic_iterations)
+    # the tiny basis spans no translation, so anchoring changes no code here: the spy checks the
+    # setting reaches core (what anchoring does is tested in test_geodesic and test_cli)
+    seen = anchor_spy(monkeypatch, "geodesic", "keyframe_path")
     for anchor in (True, False):
         assert bpy.ops.bareesa.interpolate(object_a="A", object_b="B", anchor=anchor) == {"FINISHED"}
         codes = keyed(bpy.data.objects["A_to_B"])[1]
         assert np.allclose(codes, keyframe_path(t, f, h, raw.path, basis.weights, len(codes), anchor=anchor),
                            atol=1e-5)
         bpy.data.objects.remove(bpy.data.objects["A_to_B"])
+    assert seen == [True, False]  # (this test imported the real keyframe_path before the spy)
 
 
 def test_interpolate_uses_selection_and_registers_a_raw_scan_end(scene, tiny):
@@ -171,6 +190,16 @@ def test_extrapolate_two_objects_continues_the_geodesic_as_keyframes(scene, tiny
     assert list(frames) == [1, 6, 11, 16]
     expected = extrapolate(*basis.tensors(), 0.5 * A, 0.5 * B, basis.weights, 2)
     assert np.allclose(codes, expected, atol=1e-6)
+
+
+def test_extrapolate_keep_body_planted_reaches_core(scene, tiny, monkeypatch):
+    registered("A", 0.5 * A), registered("B", 0.5 * B)
+    scene.bareesa.extrapolate_steps = 2
+    seen = anchor_spy(monkeypatch, "shooting", "extrapolate")
+    for anchor in (True, False):
+        assert bpy.ops.bareesa.extrapolate(source="OBJECTS", object_a="A", object_b="B", anchor=anchor) == {
+            "FINISHED"}
+    assert seen == [True, False]
 
 
 def test_extrapolate_keyframes_adds_keys_after_the_last_two(scene, tiny):

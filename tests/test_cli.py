@@ -258,6 +258,31 @@ def test_interpolate_and_extrapolate_keep_the_inputs_off_basis_detail(capsys, bu
     assert np.allclose(gap[3], gap[0] + 3 * (gap[1] - gap[0]), atol=1e-8)
 
 
+def test_interpolate_keeps_the_humanoid_planted_unless_no_anchor(capsys, tmp_path):
+    """Rest -> both arms up on the bundled basis: the CLI's frames keep the feet on the floor;
+    --no-anchor writes the geodesic as solved, which sinks the body by ~3 cm."""
+    from core.geodesic import decode_path
+    from core.latent import load_basis
+    from core.mesh import load_mesh
+
+    b = load_basis("humanoid")
+    t, _, h = b.tensors()
+    protos = b.extras["pose_prototypes"]
+    up = decode_path(t, h, protos)[np.argmax(decode_path(t, h, protos)[:, :, 2].max(1))]
+    save_mesh(tmp_path / "rest.ply", b.template, b.faces)
+    save_mesh(tmp_path / "up.ply", up, b.faces)
+    feet = b.template[:, 2] < b.template[:, 2].min() + 0.05
+    sink = {}
+    for name, extra in (("planted", []), ("free", ["--no-anchor"])):
+        rc, _, err = run(capsys, "interpolate", tmp_path / "rest.ply", tmp_path / "up.ply", "--steps", "5",
+                         "-o", tmp_path / name, *extra)
+        assert rc == 0, err
+        frames = np.stack([load_mesh(p)[0] for p in sorted((tmp_path / name).glob("frame_*.ply"))])
+        lam = np.linspace(0, 1, len(frames))[:, None, None]
+        sink[name] = np.abs(frames[:, feet] - ((1 - lam) * b.template[feet] + lam * up[feet])).max()
+    assert sink["free"] > 0.02 and sink["planted"] < 0.01 and sink["free"] > 3 * sink["planted"]
+
+
 def test_simulate_scan_writes_a_differently_meshed_scan(capsys, meshes, tmp_path):
     from core.mesh import load_mesh
 
