@@ -165,9 +165,9 @@ def interpolation_rows(basis, seqs, halves=(5, 10), stride=6):
                     lam = np.linspace(0, 1, n)[:, None, None]
                     blend = (1 - lam) * seq[k] + lam * seq[k + 2 * half]
                     carried = detail_along(detail[k], detail[k + 2 * half], lam)
-                    anchored = decode(anchor_path(t, h, g, line))
-                    paths = (decode(g), anchored, anchored + carried, decode(line), blend)
-                    assert np.allclose(decode(line) + carried, blend, atol=1e-9)
+                    anchored, on_line = decode(anchor_path(t, h, g, line)), decode(line)
+                    paths = (decode(g), anchored, anchored + carried, on_line, blend)
+                    assert np.allclose(on_line + carried, blend, atol=1e-9)
                     probe = sorted({round(q * 2 * half) for q in (0.25, 0.5, 0.75)})
                     for name, path in zip(methods, paths):
                         d = np.mean([_distances(path[j], seq[k + j], faces, sigma) for j in probe], axis=0)

@@ -198,17 +198,17 @@ def cmd_distance(args):
 
 def _keyframe_detail(args, details, times):
     """Off-basis detail of the two input meshes along the output frames (``detail_along``), or None
-    when an input is a raw scan (no detail to keep) or --no-detail."""
+    when the inputs have none (``details`` None: a raw scan among them) or --no-detail."""
     from .latent import detail_along
 
-    if details is None or any(d is None for d in details) or args.no_detail:
+    if details is None or args.no_detail:
         return None
     return detail_along(details[0], details[1], times)
 
 
 def _detail_report(details, detail):
     """RMS off-basis detail of the inputs (what the basis misses) and whether the frames keep it."""
-    if details is None or any(d is None for d in details):
+    if details is None:
         return {}
     rms = float(np.sqrt(np.mean([np.sum(d ** 2, axis=1).mean() for d in details])))
     return {"off_basis_rms": rms, "detail_kept": detail is not None}
@@ -271,10 +271,11 @@ def cmd_extrapolate(args):
     (a0, d0), (a1, d1) = _code_of(basis, args.a), _code_of(basis, args.b)
     t, f, h = basis.tensors()
     path = extrapolate(t, f, h, a0, a1, basis.weights, args.steps, anchor=not args.no_anchor)
-    detail = _keyframe_detail(args, [d0, d1], np.arange(len(path)))
+    details = None if d0 is None or d1 is None else [d0, d1]
+    detail = _keyframe_detail(args, details, np.arange(len(path)))
     _write_frames(args.output, basis, path, detail=detail)
     _print({"frames": len(path), "seconds": time.perf_counter() - start, "output": str(args.output),
-            **_detail_report([d0, d1], detail)}, args.json, "geodesic extrapolation (frames 0 and 1 are the inputs)")
+            **_detail_report(details, detail)}, args.json, "geodesic extrapolation (frames 0 and 1 are the inputs)")
 
 
 def cmd_transfer(args):

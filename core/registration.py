@@ -810,22 +810,19 @@ class _Problem:
             return float(h2_metric.path_energy(decode(self.template, self.fields, ramp * code), self.faces,
                                                self.metric))
 
-    def screen_score(self, level, code, transform, energy=None):
+    def screen_score(self, level, code, transform, energy):
         """weight * Gamma + energy of a solved path at ``level``'s sigma and weight, Gamma on a
         binning of both surfaces with cells of SCREEN_CELL x sigma.
 
         A level's objective bins with cells of BIN_CELL x sigma; its error (a difference of large
         kernel sums) depends on how each alignment falls on the cells, enough to rank a wrong
         alignment first: finer cells make the objective comparable across alignments.
-        code (P,), transform: the end of a ``solve_level`` result; energy: its path energy (None: the
-        energy of the straight path 0 -> code in ``level.steps`` steps) -> float.
+        code (P,), transform: the end of a ``solve_level`` result; energy: its path energy -> float.
         """
         sigma = level.sigma * self.scale
         target = torch.as_tensor(transform.apply(self.scan), dtype=self.dtype, device=self.device)
         code = torch.as_tensor(code, dtype=self.dtype, device=self.device)
         with torch.no_grad():
-            if energy is None:
-                energy = self.straight_energy(level, code)
             final = decode(self.template, self.fields, code)
             loss = BinnedVarifoldLoss(final, self.faces, target, self.scan_faces, sigma, self.kernel,
                                       self.scan_weights, cell=SCREEN_CELL * sigma)

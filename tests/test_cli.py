@@ -267,8 +267,8 @@ def test_interpolate_keeps_the_humanoid_planted_unless_no_anchor(capsys, tmp_pat
 
     b = load_basis("humanoid")
     t, _, h = b.tensors()
-    protos = b.extras["pose_prototypes"]
-    up = decode_path(t, h, protos)[np.argmax(decode_path(t, h, protos)[:, :, 2].max(1))]
+    bodies = decode_path(t, h, b.extras["pose_prototypes"])
+    up = bodies[np.argmax(bodies[:, :, 2].max(1))]
     save_mesh(tmp_path / "rest.ply", b.template, b.faces)
     save_mesh(tmp_path / "up.ply", up, b.faces)
     feet = b.template[:, 2] < b.template[:, 2].min() + 0.05

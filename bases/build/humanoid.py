@@ -43,7 +43,6 @@ from core.mesh import validate_mesh
 from core.statistics import pose_prototypes
 
 from .blender import bake, mesh_arrays, mesh_object, reset_scene, triangles
-
 from .common import elastic_paths, fit_basis_distribution, topology_signature
 
 NAME = "humanoid"
