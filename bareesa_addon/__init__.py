@@ -1,10 +1,10 @@
 """BaRe-ESA for Blender: the Blender side (operators, N-panel, conversions, background jobs).
 
-Thin by design: all mathematics lives in the solver ``core``, which never
-imports bpy (vendored as ``<package>/core`` in the installable extension).
+Thin by design: all mathematics lives in the solver package ``bareesa``, which
+never imports bpy (vendored as ``<extension>/bareesa`` in the installable extension).
 Modules: ``convert`` (bpy <-> arrays), ``operators`` (one per user action),
 ``jobs`` (solves off the main thread), ``panels`` (the sidebar), ``properties``
-(scene settings), ``preferences`` (dependencies, device), ``solver`` (core access).
+(scene settings), ``preferences`` (dependencies, device), ``solver`` (access to the solver).
 """
 
 from . import operators, panels, preferences, properties

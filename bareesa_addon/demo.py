@@ -25,7 +25,7 @@ from mathutils import Vector
 
 from . import convert, solver
 
-#: Scan simulator settings (lengths are fractions of the body size, see core.scan_simulator).
+#: Scan simulator settings (lengths are fractions of the body size, see bareesa.scan_simulator).
 SCAN_OPTIONS = dict(resolution=0.03, holes=2, noise=0.001, rigid=True, scale=0.1)
 #: Object colours of the contact sheet (linear RGBA).
 SCAN_COLOR = (0.50, 0.52, 0.56, 1.0)
@@ -61,11 +61,11 @@ def pick_basis(requested):
     """The requested basis (bundled name or .npz path): -> reference. Only the default, ``humanoid``,
     falls back to ``deformables`` (a checkout whose humanoid was not built); any other name that
     does not resolve raises InputError."""
-    latent, errors = solver.module("latent"), solver.module("errors")
+    basis_io, errors = solver.module("basis_io"), solver.module("errors")
     candidates = (requested, "deformables") if requested == "humanoid" else (requested,)
     for name in candidates:
         try:
-            latent.resolve_basis_path(name)
+            basis_io.resolve_basis_path(name)
         except errors.InputError as err:
             if name == candidates[-1]:
                 raise

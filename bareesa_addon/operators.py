@@ -328,12 +328,13 @@ class BAREESA_OT_interpolate(SolveOperator, bpy.types.Operator):
         max_iter = s.geodesic_iterations
         device, make_meshes = solver_device(context), s.make_collection
         names_ab = (a.name, b.name)
-        geo = solver.module("geodesic")
+        geo = solver.module("geodesics")
+        registration = solver.module("registration")
 
         def solve(callback, cancel):
             template, faces, fields = basis.tensors(device=device)
             if all(src[0] == "scan" for src in sources):  # two raw scans: symmetric matching
-                m = geo.symmetric_match(basis, sources[0][1:], sources[1][1:], steps=steps,
+                m = registration.symmetric_match(basis, sources[0][1:], sources[1][1:], steps=steps,
                                         schedule=options["schedule"], callback=scaled_callback(callback, 0, 0.95),
                                         cancel=cancel)
                 codes = [matched_end(basis, m, k, sources[k][1]) for k in (0, 1)]
@@ -558,7 +559,7 @@ def sample_bodies(template, faces, fields, distribution, groups, weights, n, see
                   cancel=None):
     """n random codes: initial velocities drawn from ``distribution``, shot from the template (thread side).
 
-    Like ``core.statistics.sample_codes`` (the same first n draws for a seed), except that a
+    Like ``bareesa.statistics.sample_codes`` (the same first n draws for a seed), except that a
     draw whose geodesic does not converge is shot again with 2 x steps and, failing that,
     replaced by a draw from a second stream of the same seed. -> (codes (n, P), replaced draws).
     """
@@ -694,18 +695,18 @@ class BAREESA_OT_build_basis(SolveOperator, bpy.types.Operator):
                                          "differ); register them first")
         frames = np.stack([v for v, _ in meshes])
         path = Path(bpy.path.abspath(self.filepath)) if self.filepath else user_bases_dir(create=True) / f"{name}.npz"
-        latent = solver.module("latent")
+        building, basis_io = solver.module("basis_building"), solver.module("basis_io")
         weights = {"BASIS": "body", "CUSTOM": s.metric_custom}.get(s.metric, s.metric.lower())
         solver.module("h2_metric").H2Weights.parse(weights)  # a bad custom metric is reported now
         k = s.build_components
 
         def solve(callback, cancel):
-            basis = latent.build_basis(frames[0], faces, {group: [frames]}, {group: k}, weights=weights, name=name,
+            basis = building.build_basis(frames[0], faces, {group: [frames]}, {group: k}, weights=weights, name=name,
                                        provenance={"source": what, "tool": "BaRe-ESA for Blender"},
                                        callback=callback, cancel=cancel)
-            if group == "pose":  # starting poses for registration (core.registration, pose candidates)
+            if group == "pose":  # starting poses for registration (bareesa.registration, pose candidates)
                 basis.extras["pose_prototypes"] = solver.module("statistics").pose_prototypes(basis, frames)
-            latent.save_basis(path, basis)
+            basis_io.save_basis(path, basis)
             return basis
 
         def apply(context, basis):
@@ -746,7 +747,7 @@ class BAREESA_OT_distance(SolveOperator, bpy.types.Operator):
         weights, steps, device = metric(context, basis), s.steps, solver_device(context)
         options, max_iter = register_options(context, basis), s.geodesic_iterations
         labels = [o.name for o in objects]
-        geo = solver.module("geodesic")
+        geo = solver.module("geodesics")
 
         def solve(callback, cancel):
             raw = any(src[0] == "scan" for src in sources)

@@ -1,8 +1,8 @@
-"""Access to the solver ``core`` from the add-on (no bpy here).
+"""Access to the solver package ``bareesa`` from the add-on (no bpy here).
 
-Inside the installable extension the core is vendored as ``<package>/core``
-(relative imports, bundled bases in ``<package>/bases``); in a source checkout
-the top-level ``core`` package is used. The core is imported lazily so that the
+Inside the installable extension the solver is vendored as ``<extension>/bareesa``
+(relative imports, bundled bases in ``<extension>/bareesa/bases``); otherwise the
+installed ``bareesa`` package is used. The solver is imported lazily so that the
 add-on registers (and can offer to install dependencies) even when torch is missing.
 """
 
@@ -21,19 +21,19 @@ class DependencyError(ImportError):
 
 
 def module(name):
-    """The core submodule ``name`` (e.g. "latent"), vendored copy first."""
+    """The solver submodule ``name`` (e.g. "latent"), vendored copy first."""
     package = __package__ or "bareesa_addon"
     try:
-        return importlib.import_module(f"{package}.core.{name}")
+        return importlib.import_module(f"{package}.bareesa.{name}")
     except ModuleNotFoundError as err:
-        if err.name not in (f"{package}.core", f"{package}.core.{name}"):
+        if err.name not in (f"{package}.bareesa", f"{package}.bareesa.{name}"):
             raise DependencyError(f"the solver needs the Python module '{err.name}': open Preferences > "
                                   "Add-ons > BaRe-ESA and press 'Install dependencies'") from None
     try:
-        return importlib.import_module(f"core.{name}")
+        return importlib.import_module(f"bareesa.{name}")
     except ModuleNotFoundError as err:
-        if err.name in ("core", f"core.{name}"):
-            raise DependencyError(f"the BaRe-ESA solver core ({name}) is not installed with the add-on") from None
+        if err.name in ("bareesa", f"bareesa.{name}"):
+            raise DependencyError(f"the BaRe-ESA solver ({name}) is not installed with the add-on") from None
         raise DependencyError(f"the solver needs the Python module '{err.name}': open Preferences > "
                               "Add-ons > BaRe-ESA and press 'Install dependencies'") from None
 
@@ -42,7 +42,7 @@ _BASIS_CACHE = {}
 
 
 def resolve_basis(reference, user_dir=None):
-    """A bundled name, a name saved in ``user_dir`` or a path -> the string core.latent.load_basis takes."""
+    """A bundled name, a name saved in ``user_dir`` or a path -> the string bareesa.basis_io.load_basis takes."""
     reference = (reference or "").strip()
     if not reference:
         raise module("errors").InputError("no basis chosen: set one in the Basis section (a bundled name "
@@ -57,12 +57,12 @@ def resolve_basis(reference, user_dir=None):
 
 def load_basis(reference, user_dir=None):
     """Load (cached by file and modification time) a basis: -> (Basis, resolved path string)."""
-    latent = module("latent")
-    path = latent.resolve_basis_path(resolve_basis(reference, user_dir))
+    basis_io = module("basis_io")
+    path = basis_io.resolve_basis_path(resolve_basis(reference, user_dir))
     key = (str(path.resolve()), path.stat().st_mtime_ns)
     if key not in _BASIS_CACHE:
         _BASIS_CACHE.clear()  # one basis at a time: bodies are large
-        _BASIS_CACHE[key] = latent.load_basis(path)
+        _BASIS_CACHE[key] = basis_io.load_basis(path)
     return _BASIS_CACHE[key], str(path.resolve())
 
 

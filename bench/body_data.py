@@ -7,8 +7,8 @@ import numpy as np
 import trimesh
 
 from bench.common import shared_data
-from core.latent import PAPER_BODY_SCHEDULE, Basis
-from core.mesh import load_mesh
+from bareesa.latent import PAPER_BODY_SCHEDULE, Basis
+from bareesa.mesh import load_mesh
 
 
 def body_basis(script, n_fields=170, n_shape=40, seed=0, amplitude=0.02):

@@ -17,8 +17,9 @@ import torch
 
 from bench.common import markdown_table, report
 from bench.sphere_data import FAMILIES, HELD_OUT, family_sequence, load_frames
-from core import evaluation
-from core.latent import Basis, build_basis, project_to_basis
+from bareesa import evaluation
+from bareesa.latent import Basis, project_to_basis
+from bareesa.basis_building import build_basis
 
 P_VALUES = (2, 4, 6, 8, 12)
 ELASTIC_STEPS = 5  # time points of each elastic geodesic: 4 tangent vectors per pair of frames

@@ -3,8 +3,8 @@
 Held-out body types (``bases.build.humanoid.identity_sets()[1]``) performing held-out
 motions (``TEST_MOTIONS``) are regenerated with the Blender generator (needs ``bpy``).
 
-1. Registration: simulated scans (``core.scan_simulator``: voxel remesh, noise, holes,
-   random rigid motion and scale) registered with ``core.registration.register``; vertex
+1. Registration: simulated scans (``bareesa.scan_simulator``: voxel remesh, noise, holes,
+   random rigid motion and scale) registered with ``bareesa.registration.register``; vertex
    error against the true correspondence (mean, p95; mm and % of body height), Chamfer,
    Hausdorff and squared varifold distance to the scan (scan units, scaled back to metres).
 2. Interpolation / extrapolation (the paper's Tables 3-4 protocol in miniature): held-out
@@ -56,9 +56,9 @@ def held_out_data(log=print):
 
 
 def registration_rows(basis, faces, seqs, n_scans, seed=0):
-    from core.evaluation import chamfer, hausdorff, varifold, vertex_error
-    from core.registration import register
-    from core.scan_simulator import apply_similarity, simulate_scan
+    from bareesa.evaluation import chamfer, hausdorff, varifold, vertex_error
+    from bareesa.registration import register
+    from bareesa.scan_simulator import apply_similarity, simulate_scan
 
     keys = sorted(seqs)
     rows = []
@@ -99,7 +99,7 @@ def _mean_row(rows):
 
 
 def _distances(pred, true, faces, sigma):
-    from core.evaluation import chamfer, hausdorff, varifold
+    from bareesa.evaluation import chamfer, hausdorff, varifold
 
     return np.array([hausdorff(pred, true), chamfer(pred, true), varifold(pred, faces, true, faces, sigma)])
 
@@ -129,17 +129,18 @@ def interpolation_rows(basis, seqs, halves=(5, 10), stride=6):
     extrapolation from (a, a + h) to a + 2h and a + 3h where they lie in the mini-sequence.
     Endpoint codes are projections of the true frames (``project_to_basis``); the vertex
     baselines use the true frames themselves. "H2 anchored" is the geodesic with the body's
-    unmoving part kept in place (``core.geodesic.anchor_path``, what the CLI and the add-on
-    output); "+ detail" also carries the end frames' off-basis detail (``core.latent.detail_along``,
+    unmoving part kept in place (``bareesa.geodesics.anchor_path``, what the CLI and the add-on
+    output); "+ detail" also carries the end frames' off-basis detail (``bareesa.latent.detail_along``,
     what the CLI writes for template-topology inputs), so it passes through the true end frames
     as the vertex blend does: the latent line plus the same detail IS the vertex blend (F is
     affine; checked below), so that pair differs only in the path between the same ends.
     Rows per half span, and "all": the mean over every window of the task. A shot that does not
     converge is counted and left out for every method.
     """
-    from core.geodesic import anchor_path, decode_path, geodesic, straight_path
-    from core.latent import detail_along, off_basis_detail, project_to_basis
-    from core.shooting import ShootingFailed, anchor_extrapolation, extrapolate
+    from bareesa.geodesics import anchor_path, decode_path, geodesic, straight_path
+    from bareesa.latent import detail_along, off_basis_detail, project_to_basis
+    from bareesa.errors import ShootingFailed
+    from bareesa.shooting import anchor_extrapolation, extrapolate
 
     t, f, h = basis.tensors()
     faces = basis.faces
@@ -305,7 +306,7 @@ def main(argv=None):
     import torch
 
     torch.set_num_threads(args.threads)
-    from core.latent import load_basis
+    from bareesa.basis_io import load_basis
 
     basis = load_basis(args.basis)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -357,7 +358,7 @@ def main(argv=None):
 
 def write_card_accuracy(name, results):
     """Record the measured accuracy in the bundled basis' JSON card (bases/<name>.json)."""
-    from core.latent import BUNDLED_DIR
+    from bareesa.basis_io import BUNDLED_DIR
 
     path = BUNDLED_DIR / f"{name}.json"
     card = json.loads(path.read_text())

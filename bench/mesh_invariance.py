@@ -20,7 +20,7 @@ import trimesh
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from core import varifold as V  # noqa: E402
+from bareesa import varifold as V  # noqa: E402
 
 SIGMAS = np.geomspace(0.005, 0.5, 13)
 

@@ -18,9 +18,9 @@ import torch
 
 from bench.body_data import body_basis, body_scan
 from bench.common import markdown_table, report
-from core import evaluation
-from core.geodesic import geodesic
-from core.registration import register
+from bareesa import evaluation
+from bareesa.geodesics import geodesic
+from bareesa.registration import register
 
 
 def stage_printer(t0):

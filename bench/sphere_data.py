@@ -10,8 +10,9 @@ import re
 import numpy as np
 
 from bench.common import shared_data
-from core.latent import Level, build_basis
-from core.mesh import load_mesh
+from bareesa.latent import Level
+from bareesa.basis_building import build_basis
+from bareesa.mesh import load_mesh
 
 FAMILIES = ("bend_X", "bend_Y", "twist_X")
 HELD_OUT = (-60, 60)

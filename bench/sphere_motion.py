@@ -18,12 +18,13 @@ import torch
 
 from bench.common import OUT, contact_sheet, markdown_table, report
 from bench.sphere_data import FAMILIES, family_sequence, load_frames
-from core import evaluation
-from core.geodesic import decode_path
-from core.latent import build_basis, project_to_basis
-from core.errors import BareEsaError
-from core.shooting import extrapolate
-from core.statistics import fit_training_distribution, sample_codes, transfer_motion
+from bareesa import evaluation
+from bareesa.geodesics import decode_path
+from bareesa.basis_building import build_basis
+from bareesa.latent import project_to_basis
+from bareesa.errors import BareEsaError
+from bareesa.shooting import extrapolate
+from bareesa.statistics import fit_training_distribution, sample_codes, transfer_motion
 
 SUBSTEPS = 4
 METHODS = ("H2 shooting", f"H2 shooting, {SUBSTEPS} substeps", "latent line", "vertex line")

@@ -16,11 +16,11 @@ import torch
 import bench.common  # noqa: F401  (puts the repo on sys.path)
 from bench.common import OUT, contact_sheet, markdown_table, report
 from bench.sphere_data import FAMILIES, HELD_OUT, load_frames, sphere_basis
-from core import evaluation
-from core.geodesic import decode_path, geodesic, resample_path
-from core.latent import project_to_basis
-from core.registration import register
-from core.scan_simulator import apply_similarity, simulate_scan
+from bareesa import evaluation
+from bareesa.geodesics import decode_path, geodesic, resample_path
+from bareesa.latent import project_to_basis
+from bareesa.registration import register
+from bareesa.scan_simulator import apply_similarity, simulate_scan
 
 
 def shape_metrics(verts, faces, truth, sigma):

@@ -24,7 +24,7 @@ import trimesh
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from core import varifold as V  # noqa: E402
+from bareesa import varifold as V  # noqa: E402
 
 SIGMA = 0.025
 DTYPE = torch.float64

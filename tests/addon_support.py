@@ -10,9 +10,10 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-from core import synthetic  # noqa: E402
-from core.latent import Basis, Level, save_basis  # noqa: E402
-from core.statistics import fit_distribution  # noqa: E402
+from bareesa import synthetic  # noqa: E402
+from bareesa.latent import Basis, Level  # noqa: E402
+from bareesa.basis_io import save_basis  # noqa: E402
+from bareesa.statistics import fit_distribution  # noqa: E402
 
 TINY_SCHEDULE = (Level(0.25, 1e3, 1, 15), Level(0.15, 1e5, 1, 15))
 

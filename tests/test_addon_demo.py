@@ -59,7 +59,7 @@ def test_demo_basis_choice_rejects_an_unknown_name_and_keeps_the_default():
     import pytest
 
     from bareesa_addon.demo import pick_basis
-    from core.errors import InputError
+    from bareesa.errors import InputError
 
     with pytest.raises(InputError, match="no bundled basis named 'nosuch'"):
         pick_basis("nosuch")

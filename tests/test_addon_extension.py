@@ -29,7 +29,7 @@ INSTALL_SCRIPT = textwrap.dedent("""
     obj = bpy.context.active_object
     json.dump({"install": sorted(result), "enabled": enabled, "load_template": sorted(op),
                "keys": [k.name for k in obj.data.shape_keys.key_blocks],
-               "vendored_core": f"{module}.core.latent" in sys.modules,
+               "vendored_core": f"{module}.bareesa.latent" in sys.modules,
                "repo_core": "core" in sys.modules}, open(out, "w"))
 """)
 
@@ -42,10 +42,10 @@ def test_built_zip_contains_addon_vendored_core_and_manifest(tmp_path):
         sys.path.pop(0)
     path = build(tmp_path, bases=True)
     names = set(zipfile.ZipFile(path).namelist())
-    assert {"blender_manifest.toml", "__init__.py", "operators.py", "convert.py", "jobs.py", "core/latent.py",
-            "core/registration.py"} <= names
+    assert {"blender_manifest.toml", "__init__.py", "operators.py", "convert.py", "jobs.py", "bareesa/latent.py",
+            "bareesa/registration/__init__.py"} <= names
     bundled = {p.name for p in (ROOT / "bases").glob("*.npz")}
-    assert {f"bases/{n}" for n in bundled} <= names
+    assert {f"bareesa/bases/{n}" for n in bundled} <= names
 
 
 def test_zip_installs_with_blender_extension_machinery_and_runs_an_operator(tmp_path, tiny_basis_file):
@@ -67,12 +67,12 @@ def test_zip_installs_with_blender_extension_machinery_and_runs_an_operator(tmp_
     assert result["load_template"] == ["FINISHED"]
     assert result["keys"] == ["Basis", "pose_000", "pose_001", "shape_000", "shape_001"]
     assert result["vendored_core"] and not result["repo_core"]
-    assert (tmp_path / "repo" / "bareesa" / "core" / "latent.py").exists()
+    assert (tmp_path / "repo" / "bareesa" / "bareesa" / "latent.py").exists()
 
 
 @pytest.fixture
 def tiny_basis_file(tmp_path):
-    from core.latent import save_basis
+    from bareesa.basis_io import save_basis
     from tests.addon_support import tiny_basis
 
     path = tmp_path / "tiny.npz"

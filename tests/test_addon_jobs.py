@@ -93,7 +93,7 @@ def interactive(monkeypatch):
 
 
 def test_modal_solve_runs_in_a_thread_reports_progress_and_applies_on_main_thread(interactive, tiny):
-    from core.geodesic import geodesic
+    from bareesa.geodesics import geodesic
 
     basis = tiny[0]
     threads = []
@@ -140,7 +140,7 @@ def test_escape_cancels_the_solve_and_nothing_is_applied(interactive):
 
 
 def test_failed_solve_reports_the_error_and_applies_nothing(interactive):
-    from core.errors import InputError
+    from bareesa.errors import InputError
 
     def solve(callback, cancel):
         raise InputError("the scan has no faces")
@@ -162,7 +162,7 @@ def test_background_mode_runs_the_solve_synchronously():
 
 def test_scaled_callback_maps_sub_task_progress_into_its_share():
     from bareesa_addon.jobs import scaled_callback
-    from core.progress import ProgressEvent
+    from bareesa.progress import ProgressEvent
 
     seen = []
     inner = scaled_callback(seen.append, 0.5, 0.75)

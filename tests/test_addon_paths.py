@@ -13,7 +13,7 @@ A = np.array([0.2, -0.3, 0.4, 0.1])
 B = np.array([-0.5, 0.6, 0.1, 0.7])
 
 #: codes of template-topology frames come from the ridge-regularised projection (shrinks them by
-#: up to ~0.5 %, core.latent.PROJECTION_RIDGE): compare to this absolute tolerance
+#: up to ~0.5 %, bareesa.latent.PROJECTION_RIDGE): compare to this absolute tolerance
 RIDGE_ATOL = 5e-3
 
 
@@ -45,7 +45,7 @@ def decode(basis, code):
 
 
 def test_interpolate_keyframes_an_evenly_paced_geodesic_on_every_frame(scene, tiny, tmp_path):
-    from core.geodesic import step_lengths
+    from bareesa.geodesics import step_lengths
 
     basis = tiny[0]
     a, b = registered("A", A), registered("B", B, location=(3.0, 0.0, 0.0))
@@ -82,7 +82,7 @@ def anchor_spy(monkeypatch, module, name):
     """Record the ``anchor`` argument of core.<module>.<name> on every call: -> the list of values."""
     import importlib
 
-    mod = importlib.import_module(f"core.{module}")
+    mod = importlib.import_module(f"bareesa.{module}")
     real, seen = getattr(mod, name), []
 
     def spy(*args, anchor=False, **kwargs):
@@ -94,7 +94,7 @@ def anchor_spy(monkeypatch, module, name):
 
 
 def test_interpolate_keep_body_planted_is_core_keyframe_path_with_anchor(scene, tiny, monkeypatch):
-    from core.geodesic import geodesic, keyframe_path
+    from bareesa.geodesics import geodesic, keyframe_path
 
     basis = tiny[0]
     t, f, h = basis.tensors()
@@ -102,7 +102,7 @@ def test_interpolate_keep_body_planted_is_core_keyframe_path_with_anchor(scene, 
     raw = geodesic(t, f, h, A, B, basis.weights, steps=scene.bareesa.steps, max_iter=scene.bareesa.geodesic_iterations)
     # the tiny basis spans no translation, so anchoring changes no code here: the spy checks the
     # setting reaches core (what anchoring does is tested in test_geodesic and test_cli)
-    seen = anchor_spy(monkeypatch, "geodesic", "keyframe_path")
+    seen = anchor_spy(monkeypatch, "geodesics", "keyframe_path")
     for anchor in (True, False):
         assert bpy.ops.bareesa.interpolate(object_a="A", object_b="B", anchor=anchor) == {"FINISHED"}
         codes = keyed(bpy.data.objects["A_to_B"])[1]
@@ -180,7 +180,7 @@ def test_interpolate_refuses_objects_of_different_bases(scene, tiny, tmp_path):
 
 
 def test_extrapolate_two_objects_continues_the_geodesic_as_keyframes(scene, tiny):
-    from core.shooting import extrapolate
+    from bareesa.shooting import extrapolate
 
     basis = tiny[0]
     registered("A", 0.5 * A), registered("B", 0.5 * B)
@@ -204,7 +204,7 @@ def test_extrapolate_keep_body_planted_reaches_core(scene, tiny, monkeypatch):
 
 def test_extrapolate_keyframes_adds_keys_after_the_last_two(scene, tiny):
     from bareesa_addon import convert
-    from core.shooting import extrapolate
+    from bareesa.shooting import extrapolate
 
     basis = tiny[0]
     obj = registered("anim", A)
@@ -265,7 +265,7 @@ def test_transfer_motion_from_any_animated_mesh_evaluated_per_frame(scene, tiny)
     scene.bareesa.frame_start, scene.bareesa.frame_end = 1, 4
     assert bpy.ops.bareesa.transfer_motion(source="cache_like", target="target") == {"FINISHED"}
     frames, codes = keyed(target)
-    # source frames are projected with core.latent.PROJECTION_RIDGE: within its small shrinkage
+    # source frames are projected with bareesa.latent.PROJECTION_RIDGE: within its small shrinkage
     assert np.allclose(codes[0], np.r_[POSES[0], IDENTITY], atol=RIDGE_ATOL)
     assert np.allclose(codes[-1], np.r_[POSES[3], IDENTITY], atol=RIDGE_ATOL)
     assert np.allclose(codes[:, 2:], IDENTITY, atol=1e-6)
@@ -334,8 +334,8 @@ def test_generate_random_fitted_to_a_collection_of_registered_objects(scene):
 
 
 def failing_shots(monkeypatch, fail):
-    """Make core.shooting.shoot raise ShootingFailed on the calls ``fail(call number, steps)`` says: -> call log."""
-    from core import shooting
+    """Make bareesa.shooting.shoot raise ShootingFailed on the calls ``fail(call number, steps)`` says: -> call log."""
+    from bareesa import shooting
 
     real, calls = shooting.shoot, []
 
@@ -377,7 +377,7 @@ def test_generate_random_reports_and_changes_nothing_when_no_draw_can_be_shot(sc
 
 
 def test_generate_random_without_a_distribution_reports_and_changes_nothing(scene, tiny, tmp_path):
-    from core.latent import save_basis
+    from bareesa.basis_io import save_basis
 
     basis = tiny[0]
     bare = type(basis)(template=basis.template, faces=basis.faces, fields=basis.fields, groups=basis.groups,
@@ -415,7 +415,7 @@ def test_build_basis_from_an_animated_mesh_saves_and_loads_it(scene, tiny, tmp_p
     template = bpy.context.active_object
     names = [k.name for k in template.data.shape_keys.key_blocks]
     assert names[:3] == ["Basis", "pose_000", "pose_001"] and len(names) <= 6
-    from core.latent import load_basis
+    from bareesa.basis_io import load_basis
 
     learned = load_basis(path)
     protos = learned.extras["pose_prototypes"]  # a "pose" group: registration's starting poses are stored
@@ -445,7 +445,7 @@ def test_build_basis_refuses_a_collection_of_mixed_topologies(scene, tiny):
 
 
 def test_distance_between_two_objects_shown_in_settings(scene, tiny):
-    from core.geodesic import geodesic
+    from bareesa.geodesics import geodesic
 
     basis = tiny[0]
     registered("A", A), registered("B", B)

@@ -45,8 +45,8 @@ def test_register_scan_in_template_frame_gives_code_as_shape_keys_and_leaves_sca
 
 
 def test_register_scan_prealigned_overlays_a_moved_rescaled_scan(scene, tiny):
-    from core import synthetic
-    from core.evaluation import chamfer
+    from bareesa import synthetic
+    from bareesa.evaluation import chamfer
 
     _, _, surface = tiny
     verts, faces = code_surface(surface, ALPHA)
@@ -121,12 +121,13 @@ def test_register_scan_missing_basis_file_reports_and_changes_nothing(scene, tin
 
 
 def test_diverged_registration_never_writes_nan_into_shape_keys(scene, tiny, monkeypatch):
-    import core.registration as registration
+    import bareesa.registration as registration
+    from bareesa.transforms import Similarity
 
     def diverged(basis, verts, faces, **kwargs):
         n = basis.template.shape[0]
         return registration.RegistrationResult(code=np.full(basis.n_fields, np.nan), vertices=np.full((n, 3), np.nan),
-                                               path=np.zeros((2, basis.n_fields)), transform=registration.Similarity(),
+                                               path=np.zeros((2, basis.n_fields)), transform=Similarity(),
                                                levels=[], varifold=float("nan"), chamfer=float("nan"), seconds=0.0)
 
     monkeypatch.setattr(registration, "register", diverged)
@@ -140,7 +141,7 @@ def test_diverged_registration_never_writes_nan_into_shape_keys(scene, tiny, mon
 
 def test_cancelled_registration_leaves_the_scene_exactly_as_it_was(scene, tiny, monkeypatch):
     from bareesa_addon import jobs
-    from core.progress import CancelToken
+    from bareesa.progress import CancelToken
 
     def cancelled():
         token = CancelToken()

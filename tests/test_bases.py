@@ -5,8 +5,10 @@ import json
 import numpy as np
 import pytest
 
-from core.latent import BUNDLED_DIR, decode, load_basis, project_to_basis
-from core.mesh import validate_mesh
+from bareesa.basis_io import BUNDLED_DIR, load_basis
+
+from bareesa.latent import decode, project_to_basis
+from bareesa.mesh import validate_mesh
 
 BUNDLED = ["humanoid", "deformables"]
 

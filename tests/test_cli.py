@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import torch
 
-from core import cli, h2_metric, synthetic
-from core.evaluation import chamfer, hausdorff
-from core.mesh import save_mesh
-from core.varifold import varifold_distance
+from bareesa import cli, h2_metric, synthetic
+from bareesa.evaluation import chamfer, hausdorff
+from bareesa.mesh import save_mesh
+from bareesa.varifold import varifold_distance
 
 
 @pytest.fixture
@@ -96,13 +96,14 @@ def sequences(tmp_path):
 
 
 def load_mesh_v(path):
-    from core.mesh import load_mesh
+    from bareesa.mesh import load_mesh
 
     return load_mesh(path)[0]
 
 
 def test_build_basis_then_distance_and_interpolate_on_registered_meshes(capsys, sequences):
-    from core.latent import load_basis, project_to_basis
+    from bareesa.basis_io import load_basis
+    from bareesa.latent import project_to_basis
 
     tmp, v, f, seqs = sequences
     out = tmp / "b.npz"
@@ -133,10 +134,10 @@ def test_build_basis_then_distance_and_interpolate_on_registered_meshes(capsys, 
     frames = sorted((tmp / "interp").glob("frame_*.ply"))
     assert len(frames) == 5
     codes = np.load(tmp / "interp" / "codes.npy")
-    from core.mesh import load_mesh
+    from bareesa.mesh import load_mesh
     first, last = load_mesh(frames[0])[0], load_mesh(frames[-1])[0]
     assert np.abs(first - v).max() < 1e-8
-    # the end code is the ridge-regularised projection (core.latent.PROJECTION_RIDGE): close, not exact
+    # the end code is the ridge-regularised projection (bareesa.latent.PROJECTION_RIDGE): close, not exact
     assert np.abs(last - load_mesh(end)[0]).max() < 5e-3 * np.ptp(v, axis=0).max()
     # --no-anchor writes the geodesic as solved: same ends (this basis spans no translation, so
     # anchoring changes nothing either way)
@@ -171,8 +172,8 @@ def built(capsys, sequences):
 
 
 def test_build_basis_stores_distribution_and_sample_is_reproducible(capsys, built):
-    from core.latent import load_basis
-    from core.mesh import load_mesh
+    from bareesa.basis_io import load_basis
+    from bareesa.mesh import load_mesh
 
     tmp, out, _ = built
     basis = load_basis(out)
@@ -189,8 +190,9 @@ def test_build_basis_stores_distribution_and_sample_is_reproducible(capsys, buil
 
 
 def test_extrapolate_and_transfer_on_registered_meshes(capsys, built):
-    from core.latent import load_basis, project_to_basis
-    from core.mesh import load_mesh
+    from bareesa.basis_io import load_basis
+    from bareesa.latent import project_to_basis
+    from bareesa.mesh import load_mesh
 
     tmp, out, seqs = built
     basis = load_basis(out)
@@ -215,8 +217,8 @@ def test_extrapolate_and_transfer_on_registered_meshes(capsys, built):
 
 
 def test_interpolate_and_extrapolate_keep_the_inputs_off_basis_detail(capsys, built):
-    from core.latent import load_basis
-    from core.mesh import load_mesh
+    from bareesa.basis_io import load_basis
+    from bareesa.mesh import load_mesh
 
     tmp, out, seqs = built
     basis = load_basis(out)
@@ -261,9 +263,9 @@ def test_interpolate_and_extrapolate_keep_the_inputs_off_basis_detail(capsys, bu
 def test_interpolate_keeps_the_humanoid_planted_unless_no_anchor(capsys, tmp_path):
     """Rest -> both arms up on the bundled basis: the CLI's frames keep the feet on the floor;
     --no-anchor writes the geodesic as solved, which sinks the body by ~3 cm."""
-    from core.geodesic import decode_path
-    from core.latent import load_basis
-    from core.mesh import load_mesh
+    from bareesa.geodesics import decode_path
+    from bareesa.basis_io import load_basis
+    from bareesa.mesh import load_mesh
 
     b = load_basis("humanoid")
     t, _, h = b.tensors()
@@ -284,7 +286,7 @@ def test_interpolate_keeps_the_humanoid_planted_unless_no_anchor(capsys, tmp_pat
 
 
 def test_simulate_scan_writes_a_differently_meshed_scan(capsys, meshes, tmp_path):
-    from core.mesh import load_mesh
+    from bareesa.mesh import load_mesh
 
     paths, (v, w, f, s, sf) = meshes
     rc, out, err = run(capsys, "simulate-scan", paths["a"], "-o", tmp_path / "scan.ply", "--seed", "2", "--json")
@@ -297,8 +299,8 @@ def test_simulate_scan_writes_a_differently_meshed_scan(capsys, meshes, tmp_path
 
 
 def test_register_command_writes_registered_mesh_and_json(capsys, tmp_path):
-    from core.latent import save_basis
-    from core.mesh import load_mesh
+    from bareesa.basis_io import save_basis
+    from bareesa.mesh import load_mesh
 
     basis, surface = synthetic.smooth_sphere_basis(subdivisions=2, n_fields=6, seed=0)
     save_basis(tmp_path / "s.npz", basis)
@@ -326,8 +328,10 @@ def test_register_command_writes_registered_mesh_and_json(capsys, tmp_path):
 def test_demo_registers_two_simulated_scans_and_writes_an_evenly_paced_geodesic(capsys, tmp_path):
     import re
 
-    from core.latent import Level, save_basis
-    from core.mesh import load_mesh
+    from bareesa.latent import Level
+
+    from bareesa.basis_io import save_basis
+    from bareesa.mesh import load_mesh
 
     basis, _ = synthetic.smooth_sphere_basis(subdivisions=2, n_fields=6, seed=0)
     basis.schedule = (Level(0.15, 1e3, 2, 40),)

@@ -1,4 +1,4 @@
-"""Tests of core.evaluation: Chamfer, Hausdorff, vertex and geodesic errors, varifold wiring."""
+"""Tests of bareesa.evaluation: Chamfer, Hausdorff, vertex and geodesic errors, varifold wiring."""
 
 import sys
 import types
@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import InputError
-from core.evaluation import (SIGMA_FRACTION, chamfer, default_sigma, geodesic_error, hausdorff,
+from bareesa.errors import InputError
+from bareesa.evaluation import (SIGMA_FRACTION, chamfer, default_sigma, geodesic_error, hausdorff,
                              mesh_metrics, surface_graph, varifold, vertex_error)
-from core.mesh import normalise
-from core.synthetic import blob_mesh, icosphere, random_rotation, torus
+from bareesa.mesh import normalise
+from bareesa.synthetic import blob_mesh, icosphere, random_rotation, torus
 
 
 def _brute_distances(a, b):
@@ -192,9 +192,9 @@ def test_varifold_wrapper_passes_float64_tensors_and_returns_squared_distance(mo
                      sigma=sigma, kernel=kernel)
         return torch.tensor(9.0, dtype=torch.float64)
 
-    fake = types.ModuleType("core.varifold")
+    fake = types.ModuleType("bareesa.varifold")
     fake.varifold_distance = fake_varifold_distance
-    monkeypatch.setitem(sys.modules, "core.varifold", fake)
+    monkeypatch.setitem(sys.modules, "bareesa.varifold", fake)
     v, f = icosphere(1)
     out = mesh_metrics(v, f, v + 0.1, f, kernel="gaussian")
     assert out["varifold"] == 9.0
@@ -206,9 +206,9 @@ def test_varifold_wrapper_passes_float64_tensors_and_returns_squared_distance(mo
 
 
 def _real_varifold():
-    mod = pytest.importorskip("core.varifold")
+    mod = pytest.importorskip("bareesa.varifold")
     if not hasattr(mod, "varifold_distance"):
-        pytest.skip("core.varifold has no varifold_distance yet")
+        pytest.skip("bareesa.varifold has no varifold_distance yet")
 
 
 def test_varifold_zero_for_identical_and_positive_for_translated():

@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 import torch
 
-from core import geodesic, latent, synthetic
-from core.errors import InputError, SolveCancelled
-from core.progress import CancelToken
+from bareesa import basis_io, geodesics, latent, registration, synthetic
+from bareesa.errors import InputError, SolveCancelled
+from bareesa.progress import CancelToken
 from tests.test_latent import small_basis
 
 
@@ -12,12 +12,12 @@ def test_geodesic_has_lower_energy_than_straight_line_and_fixed_endpoints():
     b = small_basis()
     t, f, h = b.tensors()
     a0, a1 = np.array([0.0, 0.0, 0.0, 0.0]), np.array([2.0, -1.5, 1.0, 1.5])
-    g = geodesic.geodesic(t, f, h, a0, a1, b.weights, steps=6)
-    straight = latent.latent_path_energy(t, f, h, torch.tensor(geodesic.straight_path(a0, a1, 6)), b.weights)
+    g = geodesics.geodesic(t, f, h, a0, a1, b.weights, steps=6)
+    straight = latent.latent_path_energy(t, f, h, torch.tensor(geodesics.straight_path(a0, a1, 6)), b.weights)
     assert g.energy < 0.99 * float(straight)
     assert np.array_equal(g.path[0], a0) and np.array_equal(g.path[-1], a1)
     assert g.distance == pytest.approx(np.sqrt(g.energy))
-    lengths = geodesic.step_lengths(t, f, h, g.path, b.weights)
+    lengths = geodesics.step_lengths(t, f, h, g.path, b.weights)
     assert lengths.std() < 0.05 * lengths.mean()  # discrete geodesics have constant speed
 
 
@@ -27,17 +27,17 @@ def test_geodesic_is_straight_line_when_metric_is_constant():
     b = latent.Basis(template=v, faces=f, fields=translations, groups={}, weights="body")
     t, ft, h = b.tensors()
     a0, a1 = np.array([0.0, 1.0, -1.0]), np.array([2.0, -1.0, 0.5])
-    bent = geodesic.straight_path(a0, a1, 5) + np.sin(np.linspace(0, np.pi, 5))[:, None] * 0.7
-    g = geodesic.geodesic(t, ft, h, a0, a1, b.weights, steps=5, init=bent)
-    assert np.abs(g.path - geodesic.straight_path(a0, a1, 5)).max() < 1e-6
+    bent = geodesics.straight_path(a0, a1, 5) + np.sin(np.linspace(0, np.pi, 5))[:, None] * 0.7
+    g = geodesics.geodesic(t, ft, h, a0, a1, b.weights, steps=5, init=bent)
+    assert np.abs(g.path - geodesics.straight_path(a0, a1, 5)).max() < 1e-6
 
 
 def test_distance_is_symmetric():
     b = small_basis()
     t, f, h = b.tensors()
     a0, a1 = np.array([0.5, 0.0, -1.0, 0.2]), np.array([-1.0, 1.5, 1.0, 0.0])
-    d01 = geodesic.geodesic(t, f, h, a0, a1, b.weights, steps=5).distance
-    d10 = geodesic.geodesic(t, f, h, a1, a0, b.weights, steps=5).distance
+    d01 = geodesics.geodesic(t, f, h, a0, a1, b.weights, steps=5).distance
+    d10 = geodesics.geodesic(t, f, h, a1, a0, b.weights, steps=5).distance
     assert d01 == pytest.approx(d10, rel=1e-5)
 
 
@@ -47,11 +47,11 @@ def test_resample_path_gives_even_metric_speed_and_keeps_endpoints():
     a0, a1 = np.zeros(4), np.array([2.0, -1.5, 1.0, 1.5])
     s = np.array([0.0, 0.05, 0.1, 0.6, 1.0])[:, None]  # badly paced
     path = a0 + s * (a1 - a0)
-    out = geodesic.resample_path(t, f, h, path, b.weights, 9)
+    out = geodesics.resample_path(t, f, h, path, b.weights, 9)
     assert out.shape == (9, 4)
     assert np.array_equal(out[0], a0) and np.array_equal(out[-1], a1)
-    lengths = geodesic.step_lengths(t, f, h, out, b.weights)
-    before = geodesic.step_lengths(t, f, h, path, b.weights)
+    lengths = geodesics.step_lengths(t, f, h, out, b.weights)
+    before = geodesics.step_lengths(t, f, h, path, b.weights)
     assert lengths.std() < 0.05 * lengths.mean() < before.std()
 
 
@@ -66,7 +66,7 @@ def test_cancellation_stops_the_solve_and_returns_nothing():
         token.cancel()
 
     with pytest.raises(SolveCancelled):
-        geodesic.geodesic(t, f, h, np.zeros(4), np.ones(4), b.weights, steps=5, callback=callback, cancel=token)
+        geodesics.geodesic(t, f, h, np.zeros(4), np.ones(4), b.weights, steps=5, callback=callback, cancel=token)
     assert len(events) == 1
 
 
@@ -74,9 +74,9 @@ def test_bad_codes_raise_input_error():
     b = small_basis()
     t, f, h = b.tensors()
     with pytest.raises(InputError, match="4 coefficients"):
-        geodesic.geodesic(t, f, h, np.zeros(3), np.ones(4), b.weights)
+        geodesics.geodesic(t, f, h, np.zeros(3), np.ones(4), b.weights)
     with pytest.raises(InputError, match="NaN"):
-        geodesic.geodesic(t, f, h, np.full(4, np.nan), np.ones(4), b.weights)
+        geodesics.geodesic(t, f, h, np.full(4, np.nan), np.ones(4), b.weights)
 
 
 def _limb_basis():
@@ -93,10 +93,10 @@ def _limb_basis():
 
 def test_translation_codes_find_only_the_translations_a_basis_spans():
     b, _ = _limb_basis()
-    axes, codes = geodesic.translation_codes(b.tensors()[2])
+    axes, codes = geodesics.translation_codes(b.tensors()[2])
     assert axes.tolist() == [2]
     assert np.allclose(codes, [[0.0, 0.0, 1.0]], atol=1e-9)
-    axes, codes = geodesic.translation_codes(small_basis().tensors()[2])
+    axes, codes = geodesics.translation_codes(small_basis().tensors()[2])
     assert axes.shape == (0,) and codes.shape == (0, 4)
 
 
@@ -104,21 +104,21 @@ def test_anchor_path_removes_a_sinking_body_and_keeps_the_limb_motion():
     b, limb = _limb_basis()
     assert limb.mean() < 0.4
     t, f, h = b.tensors()
-    line = geodesic.straight_path([0.0, 0.0, 0.0], [1.5, 0.0, 0.0], 7)
+    line = geodesics.straight_path([0.0, 0.0, 0.0], [1.5, 0.0, 0.0], 7)
     path = line.copy()
     bump = np.sin(np.linspace(0, np.pi, 7))
     path[:, 1] += 0.3 * bump   # the limb takes another way (what a geodesic does)...
     path[:, 2] -= 0.05 * bump  # ...and the whole body sinks mid-path
-    out = geodesic.anchor_path(t, h, path, line)
+    out = geodesics.anchor_path(t, h, path, line)
     assert np.array_equal(out[[0, -1]], path[[0, -1]])
     assert np.allclose(out[:, :2], path[:, :2])  # the limb's own motion is kept
     assert np.abs(out[:, 2] - line[:, 2]).max() < 1e-9  # the sinking is gone
     body = ~limb
-    before = np.abs(geodesic.decode_path(t, h, path) - geodesic.decode_path(t, h, line))[:, body].max()
-    after = np.abs(geodesic.decode_path(t, h, out) - geodesic.decode_path(t, h, line))[:, body].max()
+    before = np.abs(geodesics.decode_path(t, h, path) - geodesics.decode_path(t, h, line))[:, body].max()
+    after = np.abs(geodesics.decode_path(t, h, out) - geodesics.decode_path(t, h, line))[:, body].max()
     assert before > 0.04 and after < 1e-9
     # an extrapolation keeps its two given frames and anchors every predicted one, the last included
-    ahead = geodesic.anchor_path(t, h, path[3:], line[3:], fixed=(0, 1))
+    ahead = geodesics.anchor_path(t, h, path[3:], line[3:], fixed=(0, 1))
     assert np.array_equal(ahead[:2], path[3:5])
     assert np.abs(ahead[2:, 2] - line[5:, 2]).max() < 1e-9 and np.allclose(ahead[:, :2], path[3:, :2])
 
@@ -126,38 +126,38 @@ def test_anchor_path_removes_a_sinking_body_and_keeps_the_limb_motion():
 def test_anchor_path_leaves_a_basis_without_translations_alone_and_checks_shapes():
     b = small_basis()
     t, f, h = b.tensors()
-    path = geodesic.straight_path(np.zeros(4), np.ones(4), 5)
+    path = geodesics.straight_path(np.zeros(4), np.ones(4), 5)
     bent = path + 0.1 * np.sin(np.linspace(0, np.pi, 5))[:, None]
-    assert np.array_equal(geodesic.anchor_path(t, h, bent, path), bent)
+    assert np.array_equal(geodesics.anchor_path(t, h, bent, path), bent)
     with pytest.raises(InputError, match="same shape"):
-        geodesic.anchor_path(t, h, bent, path[:4])
+        geodesics.anchor_path(t, h, bent, path[:4])
 
 
 def test_keyframe_path_anchors_then_paces_evenly():
     b, _ = _limb_basis()
     t, f, h = b.tensors()
-    line = geodesic.straight_path([0.0, 0.0, 0.0], [1.5, 0.0, 0.0], 7)
+    line = geodesics.straight_path([0.0, 0.0, 0.0], [1.5, 0.0, 0.0], 7)
     path = line + np.sin(np.linspace(0, np.pi, 7))[:, None] * np.array([0.0, 0.3, -0.05])
-    out = geodesic.keyframe_path(t, f, h, path, b.weights, 5)
-    assert np.allclose(out, geodesic.resample_path(t, f, h, geodesic.anchor_path(t, h, path, line), b.weights, 5))
-    free = geodesic.keyframe_path(t, f, h, path, b.weights, 5, anchor=False)
-    assert np.allclose(free, geodesic.resample_path(t, f, h, path, b.weights, 5))
+    out = geodesics.keyframe_path(t, f, h, path, b.weights, 5)
+    assert np.allclose(out, geodesics.resample_path(t, f, h, geodesics.anchor_path(t, h, path, line), b.weights, 5))
+    free = geodesics.keyframe_path(t, f, h, path, b.weights, 5, anchor=False)
+    assert np.allclose(free, geodesics.resample_path(t, f, h, path, b.weights, 5))
     assert np.abs(free - out)[1:-1, 2].max() > 0.01
 
 
 def test_anchored_geodesic_of_the_bundled_humanoid_keeps_the_feet_on_the_floor():
     """Rest -> both arms up: the geodesic as solved sinks the whole body (~3 cm), the anchored one does not."""
-    b = latent.load_basis("humanoid")
+    b = basis_io.load_basis("humanoid")
     t, f, h = b.tensors()
     protos = b.extras["pose_prototypes"]
-    up = protos[np.argmax(geodesic.decode_path(t, h, protos)[:, :, 2].max(1))]
+    up = protos[np.argmax(geodesics.decode_path(t, h, protos)[:, :, 2].max(1))]
     rest = np.zeros(b.n_fields)
-    g = geodesic.geodesic(t, f, h, rest, up, b.weights, steps=5, metric=b.template_metric())
-    line = geodesic.straight_path(rest, up, 5)
+    g = geodesics.geodesic(t, f, h, rest, up, b.weights, steps=5, metric=b.template_metric())
+    line = geodesics.straight_path(rest, up, 5)
     feet = b.template[:, 2] < b.template[:, 2].min() + 0.05
-    sink = lambda path: np.abs(geodesic.decode_path(t, h, path)[:, feet] - geodesic.decode_path(t, h, line)[:, feet])  # noqa: E731
+    sink = lambda path: np.abs(geodesics.decode_path(t, h, path)[:, feet] - geodesics.decode_path(t, h, line)[:, feet])  # noqa: E731
     assert sink(g.path).max() > 0.01
-    assert sink(geodesic.anchor_path(t, h, g.path, line)).max() < 0.005
+    assert sink(geodesics.anchor_path(t, h, g.path, line)).max() < 0.005
 
 
 def test_symmetric_matching_of_two_raw_scans_recovers_codes_and_geodesic():
@@ -170,11 +170,11 @@ def test_symmetric_matching_of_two_raw_scans_recovers_codes_and_geodesic():
         u, faces = synthetic.resampled_sphere(2, seed=10 + k)
         scans.append((2.0 * surface(u, c) @ rot.T + [1.0, 0.0, -2.0], faces))
     events = []
-    m = geodesic.symmetric_match(basis, scans[0], scans[1], steps=5, callback=events.append)
+    m = registration.symmetric_match(basis, scans[0], scans[1], steps=5, callback=events.append)
     assert np.abs(m.path[0] - codes[0]).max() < 0.03 * np.abs(codes).max()
     assert np.abs(m.path[-1] - codes[1]).max() < 0.03 * np.abs(codes).max()
     t, f, h = basis.tensors()
-    truth = geodesic.geodesic(t, f, h, codes[0], codes[1], basis.weights, steps=5)
+    truth = geodesics.geodesic(t, f, h, codes[0], codes[1], basis.weights, steps=5)
     assert m.distance == pytest.approx(truth.distance, rel=0.05)
     # the frames come back in the scans' frame: the ends overlay the scans
     ends = m.vertices(t, h, m.path[[0, -1]])

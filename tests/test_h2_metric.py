@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from core import h2_metric as H
-from core import synthetic
-from core.errors import InputError
+from bareesa import h2_metric as H
+from bareesa import synthetic
+from bareesa.errors import InputError
 
 BODY = H.PRESETS["body"]
 FACE = H.PRESETS["face"]

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from core import h2_metric, latent, synthetic
-from core.errors import InputError
+from bareesa import basis_building, basis_io, h2_metric, latent, synthetic
+from bareesa.errors import InputError
 
 
 def small_basis(p=4, subdivisions=2, seed=0):
@@ -54,10 +54,10 @@ def test_latent_path_energy_equals_sum_of_metric_matrix_quadratic_forms():
 def test_basis_save_load_roundtrip_keeps_everything(tmp_path):
     b = small_basis()
     b.extras["gmm_means"] = np.arange(6.0).reshape(2, 3)
-    latent.save_basis(tmp_path / "b.npz", b)
+    basis_io.save_basis(tmp_path / "b.npz", b)
     card = json.loads((tmp_path / "b.json").read_text())
     assert card["n_fields"] == 4 and card["groups"] == {"pose": [0, 3], "shape": [3, 4]}
-    c = latent.load_basis(tmp_path / "b.npz")
+    c = basis_io.load_basis(tmp_path / "b.npz")
     assert np.array_equal(c.template, b.template) and np.array_equal(c.faces, b.faces)
     assert np.array_equal(c.fields, b.fields)
     assert c.groups == b.groups and c.weights == b.weights and c.schedule == b.schedule
@@ -80,12 +80,12 @@ def test_basis_validation_errors_are_precise(tmp_path):
     with pytest.raises(InputError, match="face indices"):
         latent.Basis(template=v, faces=f + 100, fields=h, groups={})
     with pytest.raises(InputError, match="does not exist"):
-        latent.load_basis(tmp_path / "missing.npz")
+        basis_io.load_basis(tmp_path / "missing.npz")
     with pytest.raises(InputError, match="no bundled basis named"):
-        latent.load_basis("no-such-basis")
+        basis_io.load_basis("no-such-basis")
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(InputError, match="cannot read"):
-        latent.load_basis(tmp_path / "junk.npz")
+        basis_io.load_basis(tmp_path / "junk.npz")
 
 
 def test_build_basis_recovers_span_of_generating_motions():
@@ -96,7 +96,7 @@ def test_build_basis_recovers_span_of_generating_motions():
     seqs = [t + np.cumsum(rng.normal(size=(6, 2)), 0)[:, :, None, None].__mul__(pose_dirs[None]).sum(1)
             for _ in range(3)]
     ids = [t + c * shape_dir for c in (0.0, 1.0, -0.5, 2.0)]
-    built = latent.build_basis(t, b.faces, {"pose": seqs, "shape": [np.stack(ids)]}, {"pose": 5, "shape": 3})
+    built = basis_building.build_basis(t, b.faces, {"pose": seqs, "shape": [np.stack(ids)]}, {"pose": 5, "shape": 3})
     assert built.groups == {"pose": (0, 2), "shape": (2, 3)}  # rank-limited: 2 pose and 1 shape direction
     rep = built.provenance["groups"]
     assert rep["pose"]["explained_variance"] == pytest.approx(1.0)
@@ -111,9 +111,9 @@ def test_build_basis_recovers_span_of_generating_motions():
 def test_build_basis_rejects_frames_in_another_topology():
     b = small_basis()
     with pytest.raises(InputError, match="registered to the template"):
-        latent.build_basis(b.template, b.faces, {"pose": [np.zeros((3, 5, 3))]}, {"pose": 2})
+        basis_building.build_basis(b.template, b.faces, {"pose": [np.zeros((3, 5, 3))]}, {"pose": 2})
     with pytest.raises(InputError, match="do not move"):
-        latent.build_basis(b.template, b.faces, {"pose": [np.stack([b.template] * 3)]}, {"pose": 2})
+        basis_building.build_basis(b.template, b.faces, {"pose": [np.stack([b.template] * 3)]}, {"pose": 2})
 
 
 def test_principal_fields_keep_the_rank_and_drop_float32_rounding_noise():
@@ -121,7 +121,7 @@ def test_principal_fields_keep_the_rank_and_drop_float32_rounding_noise():
     directions = rng.normal(size=(3, 50, 3))
     tangents = np.tensordot(rng.normal(size=(40, 3)), directions, axes=1)
     noisy = tangents.astype(np.float32).astype(np.float64)  # frames baked in float32
-    fields, ratios = latent.principal_fields(noisy, 10)
+    fields, ratios = basis_building.principal_fields(noisy, 10)
     assert fields.shape == (3, 50, 3) and np.isclose(ratios.sum(), 1.0)
     # the fields span the true directions
     coef, *_ = np.linalg.lstsq(fields.reshape(3, -1).T, directions.reshape(3, -1).T, rcond=None)
@@ -147,8 +147,8 @@ def test_template_metric_is_cached_saved_and_recomputed_for_other_weights(tmp_pa
     t, f, h = b.tensors()
     g = b.template_metric()
     assert np.allclose(g, latent.latent_metric(t, f, h, torch.zeros(3, dtype=torch.float64), b.weights).numpy())
-    latent.save_basis(tmp_path / "b.npz", b)
-    loaded = latent.load_basis(tmp_path / "b.npz")
+    basis_io.save_basis(tmp_path / "b.npz", b)
+    loaded = basis_io.load_basis(tmp_path / "b.npz")
     assert np.array_equal(loaded.extras["template_metric"], g) and loaded.template_metric() is loaded.extras[
         "template_metric"]
     other = loaded.template_metric((2, 1, 1, 1, 1, 5))
@@ -158,7 +158,7 @@ def test_template_metric_is_cached_saved_and_recomputed_for_other_weights(tmp_pa
 def test_projection_ridge_keeps_rough_tiny_directions_small_and_the_fit_close():
     from dataclasses import replace
 
-    from core.latent import project_to_basis
+    from bareesa.latent import project_to_basis
 
     basis, _ = synthetic.smooth_sphere_basis(subdivisions=2, n_fields=6, seed=0)
     # a seventh field of tiny, rough displacements: small in L2, large in the H2 metric (like the
@@ -192,7 +192,7 @@ def test_projection_ridge_keeps_rough_tiny_directions_small_and_the_fit_close():
 
 
 def test_off_basis_detail_carried_along_reproduces_the_keyframes_and_the_vertex_blend():
-    from core.latent import detail_along, off_basis_detail, project_to_basis
+    from bareesa.latent import detail_along, off_basis_detail, project_to_basis
 
     b = small_basis()
     t, _, h = b.tensors()

@@ -1,4 +1,4 @@
-"""Tests of core.mesh: file round trips, validation errors/warnings, normalisation."""
+"""Tests of bareesa.mesh: file round trips, validation errors/warnings, normalisation."""
 
 import json
 import os
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import MeshError
-from core.mesh import (MeshWarning, Normalisation, as_tensor, load_mesh, normalise, save_mesh,
+from bareesa.errors import MeshError
+from bareesa.mesh import (MeshWarning, Normalisation, as_tensor, load_mesh, normalise, save_mesh,
                        surface_center_radius, validate_mesh)
-from core.synthetic import blob_mesh, icosphere, random_rotation
+from bareesa.synthetic import blob_mesh, icosphere, random_rotation
 
 
 def _shuffled_sphere(seed=0):

@@ -4,9 +4,10 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import SolveCancelled
-from core.optimize import SolveDiverged, minimize_lbfgs
-from core.progress import CancelToken, Monitor
+from bareesa.errors import SolveCancelled
+from bareesa.errors import SolveDiverged
+from bareesa.optimize import minimize_lbfgs
+from bareesa.progress import CancelToken, Monitor
 
 
 def rosenbrock(x):

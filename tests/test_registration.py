@@ -7,10 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from core import registration, synthetic
-from core.errors import InputError, MeshError, SolveCancelled
-from core.latent import Level
-from core.progress import CancelToken
+from bareesa import registration, synthetic
+from bareesa.registration import poses
+from bareesa.registration import problem as level_problem
+from bareesa.transforms import Similarity, axis_angle_rotation
+from bareesa.errors import InputError, MeshError, SolveCancelled
+from bareesa.latent import Level
+from bareesa.progress import CancelToken
 
 SCALE, SHIFT = 3.7, np.array([1.0, -2.0, 0.5])
 
@@ -178,18 +181,18 @@ def test_to_json_has_finite_summary(moved):
 
 
 def test_similarity_apply_invert_compose_roundtrip():
-    a = registration.Similarity(synthetic.random_rotation(1), 2.5, [1.0, 2.0, 3.0])
-    b = registration.Similarity(synthetic.random_rotation(2), 0.3, [0.0, -1.0, 0.5])
+    a = Similarity(synthetic.random_rotation(1), 2.5, [1.0, 2.0, 3.0])
+    b = Similarity(synthetic.random_rotation(2), 0.3, [0.0, -1.0, 0.5])
     x = np.random.default_rng(0).normal(size=(10, 3))
     assert np.allclose(a.invert(a.apply(x)), x)
     assert np.allclose(a.compose(b).apply(x), a.apply(b.apply(x)))
     assert np.allclose(a.inverse().apply(x), a.invert(x))
     xt = torch.as_tensor(x)
     assert torch.allclose(a.apply(xt), torch.as_tensor(a.apply(x)))
-    c = registration.Similarity.from_dict(json.loads(json.dumps(a.to_dict())))
+    c = Similarity.from_dict(json.loads(json.dumps(a.to_dict())))
     assert np.allclose(c.apply(x), a.apply(x))
     with pytest.raises(InputError):
-        registration.Similarity(np.diag([1.0, 1.0, -1.0]), 1.0, np.zeros(3))
+        Similarity(np.diag([1.0, 1.0, -1.0]), 1.0, np.zeros(3))
 
 
 def test_float32_objective_matches_float64(space, aligned):
@@ -202,14 +205,14 @@ def test_float32_objective_matches_float64(space, aligned):
 
 
 def test_binned_varifold_matches_exact_varifold_at_coarse_sigma(space):
-    from core.varifold import VarifoldLoss
+    from bareesa.varifold import VarifoldLoss
 
     basis = space["basis"]
     src, src_faces = (torch.as_tensor(x) for x in synthetic.remesh_same_surface(basis.template, basis.faces, seed=1))
     tgt, tgt_faces = (torch.as_tensor(x) for x in synthetic.remesh_same_surface(space["truth"], basis.faces, seed=2))
     for kernel in ("binet", "linear"):
         exact = VarifoldLoss(tgt, tgt_faces, 1.0, kernel=kernel, backend="dense")(src, src_faces)
-        binned = registration.BinnedVarifoldLoss(src, src_faces, tgt, tgt_faces, 1.0, kernel=kernel)
+        binned = level_problem.BinnedVarifoldLoss(src, src_faces, tgt, tgt_faces, 1.0, kernel=kernel)
         assert binned.n_groups < src_faces.shape[0] / 4
         assert float(binned(src, src_faces)) == pytest.approx(float(exact), rel=0.05)
 
@@ -222,17 +225,17 @@ def test_fine_level_scan_binning_keeps_the_code(space, monkeypatch):
     u, faces = synthetic.resampled_sphere(4, seed=4)
     scan = surface(u, space["alpha"])
     seen = []
-    real = registration.VarifoldLoss
+    real = level_problem.VarifoldLoss
 
     def spy(*args, **kwargs):
         loss = real(*args, **kwargs)
         seen.append(loss.target_points)
         return loss
 
-    monkeypatch.setattr(registration, "VarifoldLoss", spy)
+    monkeypatch.setattr(level_problem, "VarifoldLoss", spy)
     binned = registration.register(basis, scan, faces, prealign=False, backend="dense")
-    assert registration.SCAN_CELL is not None and max(seen) < 0.5 * faces.shape[0]
-    monkeypatch.setattr(registration, "SCAN_CELL", None)
+    assert level_problem.SCAN_CELL is not None and max(seen) < 0.5 * faces.shape[0]
+    monkeypatch.setattr(level_problem, "SCAN_CELL", None)
     seen.clear()
     exact = registration.register(basis, scan, faces, prealign=False, backend="dense")
     assert seen and set(seen) == {faces.shape[0]}
@@ -244,19 +247,19 @@ def test_fine_level_scan_binning_keeps_the_code(space, monkeypatch):
 def test_screen_score_tracks_the_exact_objective_and_ranks_alignments_like_it(space):
     # candidate alignments are ranked by screen_score: at the second level's sigma, on fine cells,
     # it must agree with the unbinned objective weight * Gamma + E (the level's coarse binning does not)
-    from core.h2_metric import H2Weights
-    from core.progress import Monitor
-    from core.varifold import varifold_distance
+    from bareesa.h2_metric import H2Weights
+    from bareesa.progress import Monitor
+    from bareesa.varifold import varifold_distance
 
     basis = space["basis"]
     level = basis.schedule[min(1, len(basis.schedule) - 1)]
-    problem = registration._Problem(basis, space["scan"], space["faces"], None, None, 1.0,
+    problem = level_problem.RegistrationProblem(basis, space["scan"], space["faces"], None, None, 1.0,
                                     H2Weights.parse(basis.weights), "binet", "dense", "auto", True,
                                     torch.float64, "cpu", Monitor("test"))
     exact, scores = [], []
     for degrees in (0.0, 10.0, 30.0, 180.0):
-        r = registration._rotation_np(np.radians(degrees) * np.array([0.0, 0.6, 0.8]))
-        transform = registration.Similarity(r, 1.0, np.zeros(3))
+        r = axis_angle_rotation(np.radians(degrees) * np.array([0.0, 0.6, 0.8]))
+        transform = Similarity(r, 1.0, np.zeros(3))
         final = torch.as_tensor(basis.template + np.tensordot(space["alpha"], basis.fields, 1))
         gamma = float(varifold_distance(final, torch.as_tensor(basis.faces),
                                         torch.as_tensor(transform.apply(space["scan"])),
@@ -268,11 +271,11 @@ def test_screen_score_tracks_the_exact_objective_and_ranks_alignments_like_it(sp
 
 
 def _problem(space):
-    from core.h2_metric import H2Weights
-    from core.progress import Monitor
+    from bareesa.h2_metric import H2Weights
+    from bareesa.progress import Monitor
 
     basis = space["basis"]
-    return registration._Problem(basis, space["scan"], space["faces"], None, None, 1.0,
+    return level_problem.RegistrationProblem(basis, space["scan"], space["faces"], None, None, 1.0,
                                  H2Weights.parse(basis.weights), "binet", "dense", "auto", True, torch.float64,
                                  "cpu", Monitor("test"))
 
@@ -291,7 +294,7 @@ def test_pose_starts_take_only_the_pose_group_of_each_candidate(space):
 def test_realign_moves_a_shifted_rescaled_scan_back_onto_the_surface(space):
     problem, level = _problem(space), space["basis"].schedule[1]
     size = np.ptp(space["scan"], axis=0).max()
-    off = registration.Similarity(registration._rotation_np(np.radians(4) * np.array([0.0, 0.6, 0.8])), 1.08,
+    off = Similarity(axis_angle_rotation(np.radians(4) * np.array([0.0, 0.6, 0.8])), 1.08,
                                   np.array([0.05, -0.03, 0.04]) * size)
     (fixed, score), = problem.realign(level, [space["alpha"]], off)
     error = lambda t: np.linalg.norm(t.apply(space["scan"]) - space["scan"], axis=1).mean()  # noqa: E731
@@ -305,12 +308,12 @@ def test_realign_moves_a_shifted_rescaled_scan_back_onto_the_surface(space):
 def test_pose_stage_starts_the_level_from_the_candidate_that_fits(space, monkeypatch):
     # short solves of 2 iterations barely move: the stage must hand on the candidate near alpha*,
     # not the template it was given or the far candidates
-    monkeypatch.setattr(registration, "POSE_ITER", 2)
+    monkeypatch.setattr(poses, "POSE_ITER", 2)
     basis, alpha = space["basis"], space["alpha"]
     rng = np.random.default_rng(4)
     candidates = np.concatenate([rng.normal(size=(4, 6)), [alpha + 0.05 * rng.normal(size=6)]])
-    path, transform, share = registration._try_poses(_problem(space), basis, basis.schedule[1], basis.schedule[-1],
-                                                     np.zeros((2, 6)), registration.Similarity(), candidates,
+    path, transform, share = poses.try_poses(_problem(space), basis, basis.schedule[1], basis.schedule[-1],
+                                                     np.zeros((2, 6)), Similarity(), candidates,
                                                      (0.0, 1.0), "test")
     assert 0 < share < 1
     assert np.linalg.norm(path[-1] - alpha) < 0.2 * np.linalg.norm(alpha)
@@ -332,14 +335,14 @@ def test_a_level_changes_the_scale_by_a_bounded_factor():
     # a free scale let a wrong alignment grow the template over a body scan (x1.9) and win the screening
     units = np.ones(7)
     center = np.array([0.1, -0.2, 0.3])
-    limit = math.exp(registration.SCALE_LOG_LIMIT)
+    limit = math.exp(level_problem.SCALE_LOG_LIMIT)
     for l in (-50.0, -1.0, 1.0, 50.0):
-        s = registration._delta_similarity(np.r_[np.zeros(6), l], center, units).scale
+        s = level_problem.delta_similarity(np.r_[np.zeros(6), l], center, units).scale
         assert 1 / limit - 1e-12 <= s <= limit + 1e-12
-    small = registration._delta_similarity(np.r_[np.zeros(6), 0.01], center, units)
+    small = level_problem.delta_similarity(np.r_[np.zeros(6), 0.01], center, units)
     assert np.isclose(small.scale, math.exp(0.01), rtol=1e-3)  # near identity the scale is unchanged
     np.testing.assert_allclose(small.apply(center[None]), center[None], atol=1e-15)
     # the objective's map is the same bound as the transform a level returns
-    t = registration._log_scale(torch.tensor([-50.0, 0.01, 50.0], dtype=torch.float64))
-    scales = [registration._delta_similarity(np.r_[np.zeros(6), x], center, units).scale for x in (-50.0, 0.01, 50.0)]
+    t = level_problem.log_scale(torch.tensor([-50.0, 0.01, 50.0], dtype=torch.float64))
+    scales = [level_problem.delta_similarity(np.r_[np.zeros(6), x], center, units).scale for x in (-50.0, 0.01, 50.0)]
     np.testing.assert_allclose(np.exp(t.numpy()), scales, rtol=1e-14)

@@ -1,4 +1,4 @@
-"""Tests of core.scan_simulator: seeded, really remeshed, defects as asked, transform recorded."""
+"""Tests of bareesa.scan_simulator: seeded, really remeshed, defects as asked, transform recorded."""
 
 import argparse
 import json
@@ -6,12 +6,12 @@ import json
 import numpy as np
 import pytest
 
-from core.errors import InputError
-from core.evaluation import chamfer
-from core.mesh import load_mesh, save_mesh, surface_center_radius, validate_mesh
-from core.scan_simulator import (add_simulate_scan_arguments, apply_similarity, simulate_scan,
+from bareesa.errors import InputError
+from bareesa.evaluation import chamfer
+from bareesa.mesh import load_mesh, save_mesh, surface_center_radius, validate_mesh
+from bareesa.scan_simulator import (add_simulate_scan_arguments, apply_similarity, simulate_scan,
                                  simulate_scan_cli, undo_similarity)
-from core.synthetic import blob_mesh
+from bareesa.synthetic import blob_mesh
 
 
 @pytest.fixture(scope="module")

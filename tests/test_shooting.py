@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 import torch
 
-from core import geodesic, h2_metric, latent, shooting, synthetic
-from core.errors import InputError, SolveCancelled
-from core.progress import CancelToken
+from bareesa import geodesics, h2_metric, latent, shooting, synthetic
+from bareesa.errors import InputError, SolveCancelled
+from bareesa.progress import CancelToken
 from tests.test_latent import small_basis
 
 
@@ -23,8 +23,8 @@ def test_shooting_with_initial_velocity_of_bvp_geodesic_reproduces_it():
     b = small_basis()
     t, f, h = b.tensors()
     a0, a1 = np.array([0.2, 0.0, -0.3, 0.1]), np.array([1.5, -1.0, 0.8, 1.2])
-    g = geodesic.geodesic(t, f, h, a0, a1, b.weights, steps=6)
-    straight = geodesic.straight_path(a0, a1, 6)
+    g = geodesics.geodesic(t, f, h, a0, a1, b.weights, steps=6)
+    straight = geodesics.straight_path(a0, a1, 6)
     assert np.abs(g.path - straight).max() > 1e-2  # the geodesic is genuinely curved
     shot = shooting.shoot(t, f, h, a0, shooting.initial_velocity(g.path), b.weights, steps=5)
     assert np.abs(shot - g.path).max() < 1e-5 * np.abs(g.path).max()
@@ -61,9 +61,9 @@ def test_anchored_extrapolation_keeps_the_unmoving_body_on_the_straight_line():
     free = shooting.extrapolate(t, f, h, a0, a1, b.weights, n_new=3)
     out = shooting.extrapolate(t, f, h, a0, a1, b.weights, n_new=3, anchor=True)
     line = a0 + np.arange(5)[:, None] * (a1 - a0)
-    assert np.allclose(out, geodesic.anchor_path(t, h, free, line, fixed=(0, 1)))
+    assert np.allclose(out, geodesics.anchor_path(t, h, free, line, fixed=(0, 1)))
     assert np.array_equal(out[:2], free[:2]) and np.allclose(out[:, :2], free[:, :2])
-    body = geodesic.decode_path(t, h, out)[:, ~limb] - geodesic.decode_path(t, h, line)[:, ~limb]
+    body = geodesics.decode_path(t, h, out)[:, ~limb] - geodesics.decode_path(t, h, line)[:, ~limb]
     assert np.abs(body).max() < 1e-9
 
 

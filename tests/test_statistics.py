@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 import torch
 
-from core import h2_metric, latent, shooting, statistics, synthetic
-from core.errors import InputError
+from bareesa import basis_building, h2_metric, latent, shooting, statistics, synthetic
+from bareesa.errors import InputError
 from tests.test_latent import small_basis
 
 
@@ -59,7 +59,7 @@ def test_vertex_geodesic_beats_linear_blend_and_fixes_ends():
     c, s = np.cos(np.pi / 2), np.sin(np.pi / 2)
     rotated = v @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
     w = h2_metric.H2Weights(1, 10, 10, 10, 1, 0)
-    path = statistics.vertex_geodesic(v, rotated, f, w, steps=5, max_iter=200)
+    path = basis_building.vertex_geodesic(v, rotated, f, w, steps=5, max_iter=200)
     assert np.array_equal(path[0], v) and np.array_equal(path[-1], rotated)
     blend = np.linspace(0, 1, 5)[:, None, None] * (rotated - v) + v
     e_geo = h2_metric.path_energy(torch.tensor(path), torch.tensor(f), w)
@@ -70,7 +70,7 @@ def test_vertex_geodesic_beats_linear_blend_and_fixes_ends():
 def test_elastic_basis_spans_the_identity_differences():
     b = small_basis(p=3)
     ids = np.stack([b.template + c * b.fields[2] + abs(c) * 0.3 * b.fields[0] for c in (0.0, 1.0, -1.0)])
-    built = latent.build_basis(b.template, b.faces, {"shape": [ids]}, {"shape": 8}, weights="face",
+    built = basis_building.build_basis(b.template, b.faces, {"shape": [ids]}, {"shape": 8}, weights="face",
                                elastic=("shape",), elastic_steps=4)
     assert built.provenance["groups"]["shape"]["construction"] == "elastic H2 geodesics"
     q, _ = np.linalg.qr(built.fields.reshape(built.n_fields, -1).T)
@@ -78,7 +78,7 @@ def test_elastic_basis_spans_the_identity_differences():
         d = d.ravel()
         assert np.linalg.norm(d - q @ (q.T @ d)) < 1e-6 * np.linalg.norm(d)
     with pytest.raises(InputError, match="unknown groups"):
-        latent.build_basis(b.template, b.faces, {"shape": [ids]}, {"shape": 2}, elastic=("pose",))
+        basis_building.build_basis(b.template, b.faces, {"shape": [ids]}, {"shape": 2}, elastic=("pose",))
 
 
 def test_whitened_vertex_geodesic_reaches_the_plain_solvers_energy_in_few_iterations(monkeypatch):
@@ -87,10 +87,10 @@ def test_whitened_vertex_geodesic_reaches_the_plain_solvers_energy_in_few_iterat
     bent = v @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T + 0.2 * np.sin(v)
     w = h2_metric.H2Weights(1, 10, 10, 10, 1, 1)
     energy = lambda p: float(h2_metric.path_energy(torch.tensor(p), torch.tensor(f), w))  # noqa: E731
-    fast = statistics.vertex_geodesic(v, bent, f, w, steps=5, max_iter=60)
-    monkeypatch.setattr(statistics, "WHITENED_MAX_VERTICES", 0)
-    plain = statistics.vertex_geodesic(v, bent, f, w, steps=5, max_iter=3000)
-    plain_short = statistics.vertex_geodesic(v, bent, f, w, steps=5, max_iter=60)
+    fast = basis_building.vertex_geodesic(v, bent, f, w, steps=5, max_iter=60)
+    monkeypatch.setattr(basis_building, "WHITENED_MAX_VERTICES", 0)
+    plain = basis_building.vertex_geodesic(v, bent, f, w, steps=5, max_iter=3000)
+    plain_short = basis_building.vertex_geodesic(v, bent, f, w, steps=5, max_iter=60)
     assert np.array_equal(fast[0], v) and np.array_equal(fast[-1], bent)
     assert energy(fast) <= energy(plain) * (1 + 1e-9) < energy(plain_short)
     assert np.abs(fast - plain).max() < 1e-4 * np.abs(bent - v).max()

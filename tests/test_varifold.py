@@ -1,13 +1,13 @@
-"""Tests of core.varifold: the three backends agree, metric properties, invariances, options."""
+"""Tests of bareesa.varifold: the three backends agree, metric properties, invariances, options."""
 
 import numpy as np
 import pytest
 import torch
 
-from core import varifold as V
-from core.errors import InputError
-from core.synthetic import blob_mesh, random_rotation
-from core.varifold import VarifoldLoss, choose_backend, varifold_distance
+from bareesa import varifold as V
+from bareesa.errors import InputError
+from bareesa.synthetic import blob_mesh, random_rotation
+from bareesa.varifold import VarifoldLoss, choose_backend, varifold_distance
 
 SIGMA = 0.1          # blobs have diameter ~2-3: truncation removes most pairs at this scale
 DT = torch.float64

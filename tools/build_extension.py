@@ -1,11 +1,11 @@
-"""Build the installable Blender extension .zip: the add-on, the vendored solver core, the bundled bases.
+"""Build the installable Blender extension .zip: the add-on, the vendored solver, the bundled bases.
 
     python tools/build_extension.py [--out dist] [--no-bases]
 
 Layout of the zip (its root is the extension package):
     blender_manifest.toml, __init__.py, operators.py, ...   (bareesa_addon/)
-    core/*.py                                               (the solver, imported relatively)
-    bases/*.npz, bases/*.json                               (bundled bases, when built)
+    bareesa/**.py                                           (the solver package, imported relatively)
+    bareesa/bases/*.npz, bareesa/bases/*.json               (bundled bases, as in an installed wheel)
 Install it with Blender's Preferences > Get Extensions > Install from Disk, or
 ``blender --command extension install-file -r user_default -e <zip>``.
 """
@@ -36,15 +36,16 @@ def build(out_dir=ROOT / "dist", bases=True):
     out_dir.mkdir(parents=True, exist_ok=True)
     target = out_dir / f"bareesa-{manifest['version']}.zip"
     entries = [(manifest_path, "blender_manifest.toml")]
-    entries += [(p, p.relative_to(ROOT / "bareesa_addon").as_posix()) for p in _files(ROOT / "bareesa_addon", ["*.py"])]
-    entries += [(p, "core/" + p.name) for p in _files(ROOT / "core", ["*.py"])]
+    addon, solver = ROOT / "bareesa_addon", ROOT / "core" / "bareesa"
+    entries += [(p, p.relative_to(addon).as_posix()) for p in _files(addon, ["**/*.py"])]
+    entries += [(p, "bareesa/" + p.relative_to(solver).as_posix()) for p in _files(solver, ["**/*.py"])]
     if bases:
-        entries += [(p, "bases/" + p.name) for p in _files(ROOT / "bases", ["*.npz", "*.json"])]
+        entries += [(p, "bareesa/bases/" + p.name) for p in _files(ROOT / "bases", ["*.npz", "*.json"])]
     for src, name in entries:
-        if name.startswith("core/") and src.suffix == ".py":
+        if name.startswith("bareesa/") and src.suffix == ".py":
             text = src.read_text()
-            if "\nimport core" in text or "\nfrom core" in text:
-                raise SystemExit(f"{src}: the vendored core must use relative imports only")
+            if "\nimport bareesa" in text or "\nfrom bareesa" in text:
+                raise SystemExit(f"{src}: the vendored solver must use relative imports only")
     tmp = target.with_suffix(".zip.tmp")
     with zipfile.ZipFile(tmp, "w") as zf:
         for src, name in entries:

@@ -42,7 +42,7 @@ def main(argv=None):
         import bpy  # noqa: F401
     except ImportError:
         sys.exit("building the bases needs the bpy module: pip install -e '.[blender]' (Python 3.11)")
-    from core.latent import save_basis
+    from bareesa.basis_io import save_basis
 
     import importlib
 

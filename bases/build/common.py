@@ -2,18 +2,19 @@
 
 import numpy as np
 
-from core.geodesic import geodesic
-from core.h2_metric import H2Weights
-from core.latent import project_to_basis
-from core.shooting import initial_velocity
-from core.statistics import fit_distribution, vertex_geodesic
+from bareesa.geodesics import geodesic
+from bareesa.h2_metric import H2Weights
+from bareesa.latent import project_to_basis
+from bareesa.shooting import initial_velocity
+from bareesa.statistics import fit_distribution
+from bareesa.basis_building import vertex_geodesic
 
 
 def elastic_paths(pairs, faces, weights="body", steps=4, max_iter=60, log=None):
     """Parametrised H2 geodesics in vertex space between pairs of same-topology meshes.
 
     pairs: list of ((N, 3), (N, 3)) -> list of paths (steps, N, 3). Their
-    consecutive differences are exactly ``core.statistics.elastic_tangents``;
+    consecutive differences are exactly ``bareesa.statistics.elastic_tangents``;
     ``max_iter`` bounds the L-BFGS iterations per geodesic (the build budget).
     """
     w = H2Weights.parse(weights)

@@ -15,8 +15,10 @@ import time
 import bpy
 import numpy as np
 
-from core.latent import Level, build_basis
-from core.mesh import validate_mesh
+from bareesa.latent import Level
+
+from bareesa.basis_building import build_basis
+from bareesa.mesh import validate_mesh
 
 from .blender import bake, mesh_object, reset_scene
 from .common import elastic_paths, fit_basis_distribution, topology_signature

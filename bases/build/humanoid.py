@@ -38,9 +38,11 @@ import bpy
 import numpy as np
 from mathutils import Quaternion, Vector
 
-from core.latent import PAPER_BODY_SCHEDULE, build_basis
-from core.mesh import validate_mesh
-from core.statistics import pose_prototypes
+from bareesa.latent import PAPER_BODY_SCHEDULE
+
+from bareesa.basis_building import build_basis
+from bareesa.mesh import validate_mesh
+from bareesa.statistics import pose_prototypes
 
 from .blender import bake, mesh_arrays, mesh_object, reset_scene, triangles
 from .common import elastic_paths, fit_basis_distribution, topology_signature

@@ -1,4 +1,4 @@
-"""Exceptions with messages a user can act on (the CLI prints them without a traceback)."""
+"""Every exception a user can see: messages a user can act on (the CLI prints them without a traceback)."""
 
 
 class BareEsaError(Exception):
@@ -15,3 +15,11 @@ class InputError(BareEsaError, ValueError):
 
 class SolveCancelled(BareEsaError):
     """A long solve was cancelled by its caller; no partial result is returned."""
+
+
+class SolveDiverged(BareEsaError):
+    """The objective of a solve became non-finite; it stops instead of returning NaNs."""
+
+
+class ShootingFailed(BareEsaError):
+    """A step of the initial value problem did not converge or produced non-finite values."""

@@ -5,15 +5,12 @@ h_i, split into named groups (e.g. ``pose`` and ``shape``). The affine decoder i
 F(alpha) = q-bar + sum_i alpha_i h_i and the latent space carries the pull-back
 metric G-bar(alpha) = [G_F(alpha)(h_i, h_j)] of the invariant H2 metric.
 
-Basis files are ``.npz`` (arrays) with a small JSON card beside them
-(``name.json``: metadata a person can read). ``load_basis`` also accepts the name
-of a basis bundled in ``bases/``.
+Files and the bundled bases are ``basis_io``'s; building a basis from registered
+data is ``basis_building``'s; ``project_to_basis`` gives the code of a mesh already
+in template topology.
 """
 
-import json
-import math
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -22,7 +19,6 @@ from . import geometry, h2_metric
 from .errors import InputError
 from .h2_metric import H2Weights
 
-BUNDLED_DIR = Path(__file__).resolve().parents[1] / "bases"
 FORMAT_VERSION = 1
 
 
@@ -189,157 +185,6 @@ def latent_path_energy(template, faces, fields, path, weights, per_step=False):
     decoded meshes (cost O(T F), no P x P matrix is formed).
     """
     return h2_metric.path_energy(decode(template, fields, path), faces, weights, per_step=per_step)
-
-
-# ----------------------------------------------------------------------------------- files
-
-
-def resolve_basis_path(name_or_path):
-    """A bundled basis name ('humanoid') or a path to an .npz file -> Path."""
-    p = Path(name_or_path)
-    if p.suffix == ".npz" or p.exists() or p.parent != Path("."):
-        if not p.exists():
-            raise InputError(f"basis file {p} does not exist")
-        return p
-    bundled = BUNDLED_DIR / f"{name_or_path}.npz"
-    if bundled.exists():
-        return bundled
-    names = sorted(x.stem for x in BUNDLED_DIR.glob("*.npz"))
-    raise InputError(f"no bundled basis named '{name_or_path}' (bundled: {', '.join(names) or 'none'}); "
-                     "give a path to an .npz basis file instead")
-
-
-def save_basis(path, basis, fields_dtype=None):
-    """Write ``path`` (.npz arrays) and ``path.json`` (its card) atomically.
-
-    fields_dtype: store the fields in reduced precision (e.g. ``np.float16``)
-    to make bundled files smaller; they are read back as float64.
-    """
-    path = Path(path)
-    if path.suffix != ".npz":
-        raise InputError(f"a basis file must end in .npz, got {path.name}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    card = basis.card()
-    fields = basis.fields if fields_dtype is None else basis.fields.astype(fields_dtype)
-    arrays = {"template": basis.template, "faces": basis.faces, "fields": fields,
-              "card": np.frombuffer(json.dumps(card).encode(), dtype=np.uint8)}
-    arrays.update({f"extra_{k}": np.asarray(v) for k, v in basis.extras.items()})
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    tmp.replace(path)
-    json_tmp = path.with_suffix(".json.tmp")
-    json_tmp.write_text(json.dumps(card, indent=2) + "\n")
-    json_tmp.replace(path.with_suffix(".json"))
-
-
-def load_basis(name_or_path):
-    """Load and validate a basis from a bundled name or an .npz path."""
-    path = resolve_basis_path(name_or_path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except Exception as err:  # zipfile / pickle / value errors
-        raise InputError(f"cannot read basis file {path}: {err}") from None
-    missing = {"template", "faces", "fields", "card"} - set(data)
-    if missing:
-        raise InputError(f"basis file {path} lacks {', '.join(sorted(missing))}")
-    try:
-        card = json.loads(data["card"].tobytes().decode())
-    except ValueError as err:
-        raise InputError(f"basis file {path} has an unreadable card: {err}") from None
-    if card.get("format", 0) > FORMAT_VERSION:
-        raise InputError(f"basis file {path} has format {card['format']}; this version reads up to {FORMAT_VERSION}")
-    return Basis(template=data["template"], faces=data["faces"], fields=data["fields"],
-                 groups=card.get("groups", {}), weights=card.get("metric", "body"),
-                 schedule=card.get("schedule", PAPER_BODY_SCHEDULE), scale=card.get("scale", 1.0),
-                 units=card.get("units", ""), name=card.get("name", path.stem),
-                 provenance=card.get("provenance", {}),
-                 extras={k[6:]: v for k, v in data.items() if k.startswith("extra_")})
-
-
-# --------------------------------------------------------------------------- construction
-
-
-RANK_RTOL = 1e-6
-
-
-def principal_fields(tangents, n_components):
-    """Leading principal directions of tangent vectors: (M, N, 3) -> fields (K, N, 3), variance ratios (K,).
-
-    Uncentred PCA (SVD of the tangent vectors themselves): tangent vectors of
-    motions are directions, their mean is meaningful and must stay in the span.
-    Fields are scaled by singular value / sqrt(M) so that codes of the training
-    data are of order one (well-conditioned optimisation).
-    """
-    m = tangents.reshape(tangents.shape[0], -1)
-    if m.shape[0] == 0:
-        raise InputError("no tangent vectors: a group needs at least one sequence of two frames")
-    _, s, vt = np.linalg.svd(m, full_matrices=False)
-    # directions below RANK_RTOL x the leading singular value carry < 1e-12 of the variance: they
-    # are rounding noise (Blender bakes float32 frames), not motion, and would make bad fields
-    rank = int((s > s[0] * RANK_RTOL).sum()) if s[0] > 0 else 0
-    if rank == 0:
-        raise InputError("all tangent vectors are zero: the frames of a group do not move")
-    k = min(n_components, rank)
-    fields = (s[:k, None] / math.sqrt(m.shape[0])) * vt[:k]
-    ratios = s[:k] ** 2 / (s**2).sum()
-    return fields.reshape(k, *tangents.shape[1:]), ratios
-
-
-def sequence_tangents(sequences):
-    """Differences of consecutive frames of each sequence: list of (T_i, N, 3) -> (sum(T_i - 1), N, 3)."""
-    diffs = [np.diff(np.asarray(s, dtype=np.float64), axis=0) for s in sequences if len(s) >= 2]
-    if not diffs:
-        raise InputError("every sequence has fewer than two frames: nothing to learn a motion from")
-    return np.concatenate(diffs)
-
-
-def build_basis(template, faces, groups, components, weights="body", scale=None, name="basis",
-                units="", schedule=PAPER_BODY_SCHEDULE, provenance=None, elastic=(), elastic_steps=5,
-                callback=None, cancel=None):
-    """PCA basis from registered 4D data (paper section 5.2).
-
-    groups: {name: list of sequences (T_i, N, 3)} in template topology;
-    components: {name: K} the number of fields kept per group; groups named in
-    ``elastic`` use the steps of parametrised H2 geodesics between consecutive
-    meshes instead of plain differences (the paper's shape basis).
-    """
-    template = np.asarray(template, dtype=np.float64)
-    unknown = set(elastic) - set(groups)
-    if unknown:
-        raise InputError(f"elastic construction asked for unknown groups {', '.join(sorted(unknown))}")
-    blocks, ranges, report, start = [], {}, {}, 0
-    for gname, seqs in groups.items():
-        for s in seqs:
-            if np.asarray(s).shape[1:] != template.shape:
-                raise InputError(f"group '{gname}': a frame has shape {np.asarray(s).shape[1:]} but the template "
-                                 f"has {template.shape}: frames must be registered to the template topology")
-        k = int(components.get(gname, 10))
-        if k < 1:
-            raise InputError(f"group '{gname}': number of components must be >= 1, got {k}")
-        if gname in elastic:
-            from .statistics import elastic_tangents
-
-            tangents = elastic_tangents([np.asarray(x, dtype=np.float64) for x in seqs], faces,
-                                        H2Weights.parse(weights), steps=elastic_steps, callback=callback,
-                                        cancel=cancel)
-        else:
-            tangents = sequence_tangents(seqs)
-        fields, ratios = principal_fields(tangents, k)
-        blocks.append(fields)
-        ranges[gname] = (start, start + fields.shape[0])
-        start += fields.shape[0]
-        report[gname] = {"tangent_vectors": int(tangents.shape[0]), "components": int(fields.shape[0]),
-                         "construction": "elastic H2 geodesics" if gname in elastic else "frame differences",
-                         "requested": k, "explained_variance": float(ratios.sum()),
-                         "variance_ratios": [float(r) for r in ratios]}
-    if scale is None:
-        ext = template.max(0) - template.min(0)
-        scale = float(ext.max())
-    prov = dict(provenance or {})
-    prov["groups"] = report
-    return Basis(template=template, faces=np.asarray(faces), fields=np.concatenate(blocks), groups=ranges,
-                 weights=weights, schedule=schedule, scale=scale, name=name, units=units, provenance=prov)
 
 
 #: Relative weight of the latent metric in ``project_to_basis``. Held-out shapes projected by plain

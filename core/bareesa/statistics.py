@@ -2,19 +2,17 @@
 
 Motion transfer (swap the identity coefficients), the log map at the template
 (initial velocities of boundary-value geodesics), Gaussian mixtures on those
-velocities (scikit-learn) with sampling and shooting, and parametrised H2
-geodesics in full vertex space for elastic shape bases.
+velocities (scikit-learn) with sampling and shooting, and the training
+statistics a basis stores (distribution, pose prototypes).
 """
 
 import numpy as np
-import torch
 
 from .errors import InputError
-from .geodesic import geodesic
-from .h2_metric import path_energy
-from .optimize import minimize_lbfgs
+from .geodesics import geodesic
 from .progress import Monitor
-from .shooting import initial_velocity, jacobian_metric, shoot
+from .latent import project_to_basis
+from .shooting import initial_velocity, shoot
 
 
 def transfer_motion(frame_codes, identity_code, identity_slice):
@@ -97,68 +95,8 @@ def sample_codes(template, faces, fields, distribution, groups, weights, n, seed
     return np.stack(codes)
 
 
-#: Meshes up to this many vertices get the metric-whitened solver (dense 3N x 3N metric matrix).
-WHITENED_MAX_VERTICES = 1000
-
-
-def vertex_geodesic(verts0, verts1, faces, weights, steps=5, max_iter=300, callback=None, cancel=None):
-    """Parametrised H2 geodesic in full vertex space between same-topology meshes.
-
-    verts0, verts1 (N, 3) numpy -> path (steps, N, 3) with the given ends. Up to
-    WHITENED_MAX_VERTICES vertices it is the latent boundary value problem with one
-    field per vertex coordinate, whitened by the H2 metric matrix at the mean mesh
-    (converges in tens of iterations); larger meshes minimise the discrete path
-    energy over the interior meshes with plain L-BFGS from the linear blend.
-    """
-    v0, v1 = (np.asarray(v, dtype=np.float64) for v in (verts0, verts1))
-    if v0.shape != v1.shape:
-        raise InputError(f"an elastic geodesic needs two meshes in one topology, got {v0.shape} and {v1.shape}")
-    if steps < 3:
-        return np.stack([v0, v1])
-    faces_t = torch.as_tensor(np.asarray(faces), dtype=torch.long)
-    n = v0.shape[0]
-    if n <= WHITENED_MAX_VERTICES:
-        coords = torch.eye(3 * n, dtype=torch.float64).reshape(3 * n, n, 3)  # field i moves coordinate i
-        metric = jacobian_metric(torch.from_numpy((v0 + v1) / 2), faces_t, coords, weights).numpy()
-        g = geodesic(torch.from_numpy(v0), faces_t, coords, np.zeros(3 * n), (v1 - v0).ravel(), weights,
-                     steps=steps, max_iter=max_iter, metric=metric, callback=callback, cancel=cancel)
-        path = v0 + g.path.reshape(steps, n, 3)
-        path[0], path[-1] = v0, v1
-        return path
-    t = np.linspace(0, 1, steps)[:, None, None]
-    path = (1 - t) * v0 + t * v1
-    ends = torch.from_numpy(path[[0, -1]])
-    shape = path[1:-1].shape
-
-    def energy(x):
-        return path_energy(torch.cat([ends[:1], x.reshape(shape), ends[1:]]), faces_t, weights)
-
-    x, _, _ = minimize_lbfgs(energy, path[1:-1].ravel(), Monitor("elastic geodesic", callback, cancel),
-                             max_iter=max_iter, message="elastic geodesic")
-    path[1:-1] = x.reshape(shape)
-    return path
-
-
-def elastic_tangents(sequences, faces, weights, steps=5, callback=None, cancel=None):
-    """Tangent vectors of H2 geodesics between consecutive meshes of each sequence.
-
-    sequences: list of (T_i, N, 3) -> (sum_i (T_i - 1) * (steps - 1), N, 3): the
-    steps of each elastic geodesic (the paper's shape-basis construction).
-    """
-    out = []
-    for seq in sequences:
-        for a, b in zip(seq[:-1], seq[1:]):
-            out.append(np.diff(vertex_geodesic(a, b, faces, weights, steps, callback=callback, cancel=cancel),
-                               axis=0))
-    if not out:
-        raise InputError("elastic tangents need sequences of at least two meshes")
-    return np.concatenate(out)
-
-
 def distinct_codes(basis, frames):
     """Codes of registered frames (M, N, 3), duplicates (to 12 decimals) removed: -> (K, P) sorted."""
-    from .latent import project_to_basis
-
     return np.unique(project_to_basis(basis, np.asarray(frames, dtype=np.float64))[0].round(12), axis=0)
 
 
@@ -184,4 +122,3 @@ def pose_prototypes(basis, frames, k=24, seed=0):
     part = codes[:, basis.group_slice("pose")] if "pose" in basis.groups else codes
     labels = KMeans(n_clusters=min(k, len(codes)), n_init=4, random_state=seed).fit_predict(part)
     return np.stack([codes[labels == j].mean(0) for j in np.unique(labels)])
-

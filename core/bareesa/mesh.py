@@ -205,6 +205,18 @@ def _numpy(x):
     return np.asarray(x)
 
 
+def face_geometry(verts, faces):
+    """Numpy face geometry: (N, 3), (F, 3) -> area vectors (F, 3) = e01 x e02 / 2 (unit normal times
+    area, so their sum over a closed surface vanishes), areas (F,) and barycentres (F, 3), float64.
+
+    The one numpy counterpart of ``geometry.face_normals_areas`` (torch); a unit normal is
+    ``vectors / areas[:, None]`` where the area is positive.
+    """
+    p = _numpy(verts).astype(np.float64)[_numpy(faces)]
+    vectors = 0.5 * np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    return vectors, np.linalg.norm(vectors, axis=1), p.mean(axis=1)
+
+
 def check_mesh(verts, faces, name="mesh"):
     """The MeshError checks of :func:`validate_mesh`: -> verts (N, 3) float64, faces (F, 3) int64"""
     v, f = _numpy(verts), _numpy(faces)

@@ -21,7 +21,8 @@ exact Jacobian (double backpropagation; P energy gradients per iteration).
 import numpy as np
 import torch
 
-from .errors import BareEsaError, InputError
+from .errors import InputError, ShootingFailed
+from .geodesics import anchor_path, geodesic
 from .h2_metric import H2Weights, path_energy
 from .h2_metric import assembled_metric_matrix as jacobian_metric
 from .latent import decode
@@ -34,10 +35,6 @@ STEP_TOL = 1e-8
 REFRESH_RATIO = 0.3
 #: Metric eigenvalues below NULL_RTOL x the largest are null directions (dependent fields).
 NULL_RTOL = 1e-12
-
-
-class ShootingFailed(BareEsaError):
-    """A step of the initial value problem did not converge or produced non-finite values."""
 
 
 def _check_codes(p, **codes):
@@ -239,7 +236,7 @@ def extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new, callbac
     substeps intervals is continued by n_new * substeps steps, and every substeps-th
     point is returned (strongly curved motions need it: a step that does not
     converge raises ShootingFailed). anchor: keep the body's unmoving part where the
-    straight latent line alpha^0 + k (alpha^1 - alpha^0) puts it (``geodesic.anchor_path``;
+    straight latent line alpha^0 + k (alpha^1 - alpha^0) puts it (``geodesics.anchor_path``;
     the predicted frames only).
     """
     p = fields.shape[0]
@@ -255,8 +252,6 @@ def extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new, callbac
     monitor = Monitor("extrapolate", callback, cancel)
     path = [codes["alpha0"], codes["alpha1"]]
     if substeps > 1 and n_new > 0:
-        from .geodesic import geodesic
-
         monitor.report(0.0, "geodesic through the two given codes")
         path = list(geodesic(template, faces, fields, path[0], path[1], weights, steps=substeps + 1,
                              cancel=cancel).path[-2:])
@@ -276,10 +271,8 @@ def extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new, callbac
 
 
 def anchor_extrapolation(template, fields, path):
-    """An extrapolated path (T, P) with its predicted frames anchored (``geodesic.anchor_path``)
+    """An extrapolated path (T, P) with its predicted frames anchored (``geodesics.anchor_path``)
     to the straight latent line alpha^0 + k (alpha^1 - alpha^0) through its two given frames."""
-    from .geodesic import anchor_path
-
     path = np.asarray(path, dtype=np.float64)
     line = path[0] + np.arange(len(path))[:, None] * (path[1] - path[0])
     return anchor_path(template, fields, path, line, fixed=(0, 1))

@@ -4,11 +4,7 @@ import numpy as np
 import scipy.optimize
 import torch
 
-from .errors import BareEsaError
-
-
-class SolveDiverged(BareEsaError):
-    """The objective became non-finite; the solve stops instead of returning NaNs."""
+from .errors import SolveDiverged
 
 
 def minimize_lbfgs(objective, x0, monitor=None, max_iter=200, progress=(0.0, 1.0), message="",

@@ -105,7 +105,8 @@ def _parse_components(specs, groups):
 
 def cmd_build_basis(args):
     """PCA basis from registered 4D sequences (differences of consecutive frames per group)."""
-    from .latent import build_basis, save_basis
+    from .basis_building import build_basis
+    from .basis_io import save_basis
     from .mesh import load_mesh, validate_mesh
 
     template, faces = load_mesh(args.template)
@@ -167,7 +168,7 @@ def _codes(basis, paths, callback=None):
     if all(registered for _, _, registered in meshes):
         codes, details = zip(*(_projected(basis, v) for v, _, _ in meshes))
         return list(codes), list(details), None
-    from .geodesic import symmetric_match
+    from .registration import symmetric_match
 
     return None, None, symmetric_match(basis, meshes[0][:2], meshes[1][:2], callback=callback)
 
@@ -175,8 +176,8 @@ def _codes(basis, paths, callback=None):
 def _geodesic_between(args):
     import time
 
-    from .geodesic import geodesic
-    from .latent import load_basis
+    from .geodesics import geodesic
+    from .basis_io import load_basis
 
     start = time.perf_counter()
     basis = load_basis(args.basis)
@@ -216,7 +217,7 @@ def _detail_report(details, detail):
 
 def cmd_interpolate(args):
     """Evenly paced geodesic in-betweens of two meshes, written as T meshes and their codes."""
-    from .geodesic import keyframe_path
+    from .geodesics import keyframe_path
 
     if args.steps < 2:
         raise InputError(f"--steps must be at least 2, got {args.steps}")
@@ -243,7 +244,7 @@ def _code_of(basis, path):
 
 def _write_frames(output, basis, codes, prefix="frame", detail=None):
     """Frames F(codes) (+ detail (T, N, 3) if given) as PLY meshes, and codes.npy."""
-    from .geodesic import decode_path
+    from .geodesics import decode_path
     from .mesh import save_mesh
 
     t, _, h = basis.tensors()
@@ -261,7 +262,7 @@ def cmd_extrapolate(args):
     """Continue the motion A -> B along the latent geodesic by T frames."""
     import time
 
-    from .latent import load_basis
+    from .basis_io import load_basis
     from .shooting import extrapolate
 
     if args.steps < 1:
@@ -280,7 +281,7 @@ def cmd_extrapolate(args):
 
 def cmd_transfer(args):
     """Put the motion of the given frames on another identity (swap the identity group)."""
-    from .latent import load_basis
+    from .basis_io import load_basis
     from .statistics import transfer_motion
 
     basis = load_basis(args.basis)
@@ -293,7 +294,7 @@ def cmd_transfer(args):
 
 def cmd_sample(args):
     """Random shapes: Gaussian mixture on initial velocities at the template, then shoot."""
-    from .latent import load_basis
+    from .basis_io import load_basis
     from .statistics import fit_distribution, log_map, sample_codes
 
     if args.n < 1:
@@ -336,7 +337,7 @@ def load_landmarks(path):
 
 def cmd_register(args):
     """Latent code of a raw scan; writes the registered mesh (template topology, scan's frame)."""
-    from .latent import load_basis
+    from .basis_io import load_basis
     from .mesh import load_mesh, save_mesh, validate_mesh
     from .progress import tqdm_callback
     from .registration import register
@@ -374,8 +375,8 @@ def cmd_demo(args):
     import time
 
     from .evaluation import vertex_error
-    from .geodesic import geodesic, keyframe_path
-    from .latent import load_basis
+    from .geodesics import geodesic, keyframe_path
+    from .basis_io import load_basis
     from .mesh import save_mesh
     from .progress import tqdm_callback
     from .registration import register

@@ -1,0 +1,230 @@
+r"""``register``: the latent code of an unregistered scan, from pre-alignment to the finest level.
+
+A deformed scan of a nearly symmetric template can match a flipped template better than the right
+one, so ``register`` runs a short first level from each distinct pre-alignment candidate whose
+varifold is within PREALIGN_RATIO of the best, ranks them by ``screen_score`` and, when the best two
+are within SCREEN_TIE, runs a short second level from both and keeps the one that fits better at the
+second level's sigma (at the first level's sigma a body is nearly front/back symmetric).
+"""
+
+import math
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from ..evaluation import chamfer
+from ..h2_metric import H2Weights
+from ..latent import Level
+from ..mesh import validate_mesh
+from ..progress import Monitor
+from ..transforms import Similarity
+from .poses import POSE_FINALISTS, POSE_ITER, check_pose_candidates, try_poses
+from .prealign import PREALIGN_RATIO, prealign_candidates
+from .problem import RegistrationProblem
+
+SCREEN_DIVISOR = 8          # candidate alignments are screened with 1/8 of the first level's iterations
+#                             and a one-step path (the end code decides between alignments)
+SCREEN_FINALISTS = 2        # the best screened alignments get a short second level, which decides: at the
+SCREEN_SECOND_ITER = 5      # first level's sigma a body is nearly front/back symmetric...
+SCREEN_TIE = 1.5            # ... when the second best scored within this factor of the best
+PREALIGN_FRACTION = 0.1     # share of the progress bar given to the pre-alignment
+
+
+@dataclass
+class RegistrationResult:
+    """Latent code of a scan and the registered template.
+
+    code (P,); vertices (N, 3) registered template in the scan's frame and units; path (T+1, P)
+    the final latent path from 0 to code; transform the similarity scan -> template frame
+    (pre-alignment refined by the registration: vertices = transform.invert(F(code)));
+    levels one dict per schedule level {sigma, weight, steps, iterations, energy, varifold,
+    objective, binned, seconds}; varifold the squared varifold residual at the finest sigma (template
+    frame); chamfer between vertices and the scan (scan frame); seconds of wall time;
+    prealignment the candidate alignment the registration started from.
+    """
+
+    code: np.ndarray
+    vertices: np.ndarray
+    path: np.ndarray
+    transform: Similarity
+    levels: list
+    varifold: float
+    chamfer: float
+    seconds: float
+    prealignment: Similarity = None
+
+    def to_json(self):
+        """JSON-ready summary {code, varifold, chamfer, seconds, levels, transform}."""
+        return {"code": [float(c) for c in self.code], "varifold": float(self.varifold),
+                "chamfer": float(self.chamfer), "seconds": float(self.seconds),
+                "levels": [{k: (float(v) if isinstance(v, float) else v) for k, v in lv.items()}
+                           for lv in self.levels],
+                "transform": self.transform.to_dict()}
+
+
+
+def _check_schedule(schedule):
+    try:
+        levels = tuple(lv if isinstance(lv, Level) else Level(**lv) for lv in schedule)
+    except TypeError as err:
+        raise InputError(f"a schedule is a sequence of Level(sigma, weight, steps, max_iter): {err}") from None
+    if not levels:
+        raise InputError("the registration schedule is empty")
+    return levels
+
+
+def _check_face_weights(weights, n_faces):
+    if weights is None:
+        return None
+    w = np.asarray(weights, dtype=np.float64)
+    if w.shape != (n_faces,):
+        raise InputError(f"scan face weights must have shape ({n_faces},), one per scan face, got {w.shape}")
+    if not np.isfinite(w).all() or (w < 0).any():
+        raise InputError("scan face weights must be finite and >= 0")
+    if not (w > 0).any():
+        raise InputError("every scan face weight is zero: nothing to register")
+    return w
+
+
+def _check_landmarks(landmarks, n_verts):
+    """[(template vertex, scan xyz[, weight]), ...] -> indices (L,), points (L, 3), weights (L,)."""
+    if landmarks is None or len(landmarks) == 0:
+        return None
+    idx, pts, wts = [], [], []
+    for k, lm in enumerate(landmarks):
+        if len(lm) not in (2, 3):
+            raise InputError(f"landmark {k}: expected (template vertex index, (x, y, z)[, weight]), got {lm!r}")
+        i = lm[0]
+        if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or not 0 <= i < n_verts:
+            raise InputError(f"landmark {k}: template vertex index {i!r} is not an integer in 0..{n_verts - 1}")
+        p = np.asarray(lm[1], dtype=np.float64)
+        if p.shape != (3,) or not np.isfinite(p).all():
+            raise InputError(f"landmark {k}: scan point must be 3 finite coordinates, got {lm[1]!r}")
+        w = float(lm[2]) if len(lm) == 3 else 1.0
+        if not (math.isfinite(w) and w >= 0):
+            raise InputError(f"landmark {k}: weight must be finite and >= 0, got {w}")
+        idx.append(int(i))
+        pts.append(p)
+        wts.append(w)
+    if sum(wts) <= 0:
+        return None
+    return np.array(idx), np.stack(pts), np.array(wts)
+
+
+
+def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, landmarks=None,
+             landmark_weight=1.0, scan_face_weights=None, metric=None, kernel="binet", backend="auto",
+             binning="auto", refine_transform=None, init_code=None, pose_candidates="auto", callback=None, cancel=None,
+             dtype=torch.float64, device="cpu"):
+    """Latent code of an unregistered scan: basis, scan (M, 3), (G, 3) -> RegistrationResult.
+
+    schedule: Levels (default basis.schedule); prealign: align the scan to the template first
+    (else it must be in the template frame already); landmarks: [(template vertex, scan xyz
+    [, weight])], adding weight * landmark_weight * A * sum_i w_i |S F(alpha)_i - T p_i|^2 / sum w
+    (A the template area: comparable to the varifold of a surface offset by the same distance);
+    scan_face_weights (G,) >= 0 (0 ignores a face, e.g. a floor); metric: H2 weights (default
+    the basis'); kernel, backend: of the varifold (``core.varifold``); binning: "auto" evaluates
+    a level's varifold on cell sums (``BinnedVarifoldLoss``) when sigma is so large that this
+    cuts the face pairs 20-fold, True always, False never (an unbinned level still sums the scan
+    alone over cells of SCAN_CELL x sigma when that leaves fewer points, ``VarifoldLoss(target_cell=)``,
+    and truncates the kernel at FINE_TOL); refine_transform: optimise the
+    similarity jointly with the path (default: as prealign); init_code (P,) starts from the
+    straight path 0 -> init_code; pose_candidates (K, P): codes whose pose group (the whole code
+    when the basis has no other group) is tried as a start of the second level (see POSE_FINALISTS),
+    "auto" the basis' ``extras["pose_prototypes"]`` if it has them, None none; dtype: precision of
+    the objective (the optimiser is float64).
+    Raises MeshError/InputError on bad input, SolveCancelled when cancelled (no partial result).
+    """
+    start_time = time.perf_counter()
+    monitor = Monitor("register", callback, cancel)
+    if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+        raise InputError(f"dtype must be a torch floating point dtype, got {dtype!r}")
+    validate_mesh(scan_verts, scan_faces, "scan")
+    sv, sf = np.asarray(scan_verts, np.float64), np.asarray(scan_faces, np.int64)
+    face_w = _check_face_weights(scan_face_weights, sf.shape[0])
+    marks = _check_landmarks(landmarks, basis.template.shape[0])
+    if not (math.isfinite(landmark_weight) and landmark_weight >= 0):
+        raise InputError(f"landmark_weight must be finite and >= 0, got {landmark_weight}")
+    levels = _check_schedule(basis.schedule if schedule is None else schedule)
+    if binning not in ("auto", True, False):
+        raise InputError(f"binning must be 'auto', True or False, got {binning!r}")
+    metric = H2Weights.parse(basis.weights if metric is None else metric)
+    refine_transform = prealign if refine_transform is None else bool(refine_transform)
+    path = np.zeros((2, basis.n_fields))
+    if init_code is not None:
+        init = np.asarray(init_code, dtype=np.float64)
+        if init.shape != (basis.n_fields,) or not np.isfinite(init).all():
+            raise InputError(f"init_code must be {basis.n_fields} finite coefficients, got shape {init.shape}")
+        path[1] = init
+    poses = check_pose_candidates(basis, pose_candidates)
+
+    monitor.report(0.0, "registration: pre-aligning" if prealign else "registration: starting")
+    monitor.check()
+    if prealign:
+        candidates = prealign_candidates(basis.template, basis.faces, sv, sf, face_w, monitor=monitor,
+                                         progress=(0.0, PREALIGN_FRACTION))
+        candidates = [c for c in candidates if c[0] <= PREALIGN_RATIO * candidates[0][0] + 1e-12]
+    else:
+        candidates = [(0.0, Similarity())]
+    problem = RegistrationProblem(basis, sv, sf, face_w, marks, landmark_weight, metric, kernel, backend, binning,
+                       refine_transform, dtype, device, monitor)
+
+    # progress: the first level is tried from every candidate alignment
+    budget = np.array([lv.steps * lv.max_iter for lv in levels], dtype=np.float64)
+    budget[0] *= 1 + (len(candidates) / SCREEN_DIVISOR if len(candidates) > 1 else 0)
+    tries_poses = poses is not None and len(levels) > 1
+    if tries_poses:
+        budget[1] += (POSE_FINALISTS + 1) * levels[1].steps * POSE_ITER
+    lo = PREALIGN_FRACTION if prealign else 0.0
+    bounds = lo + (1 - lo) * np.concatenate([[0.0], np.cumsum(budget) / budget.sum()])
+    name = lambda k: f"registration level {k + 1}/{len(levels)}"  # noqa: E731
+    # screen every candidate alignment with a short first level; only the best one gets the full level
+    screen = levels[0] if len(candidates) == 1 else replace(levels[0], steps=1,
+                                                            max_iter=max(10, levels[0].max_iter // SCREEN_DIVISOR))
+    share = len(candidates) / SCREEN_DIVISOR
+    mid = bounds[1] if screen is levels[0] else bounds[0] + (bounds[1] - bounds[0]) * share / (1 + share)
+    tries = []
+    for j, (_, transform) in enumerate(candidates):
+        span = (mid - bounds[0]) / len(candidates)
+        tries.append(problem.solve_level(screen, path, transform, (bounds[0] + j * span, bounds[0] + (j + 1) * span),
+                                         name(0) + (f" (alignment {j + 1}/{len(candidates)})" if j else "")))
+    best, resume = 0, None
+    if len(tries) > 1:
+        # the screened objectives ranked on fine cells; the finer second level decides between the best
+        scores = [problem.screen_score(levels[0], p[-1], t, r["energy"]) for p, t, r in tries]
+        order = np.argsort(scores)
+        best = int(order[0])
+        finalists = [int(j) for j in order[:SCREEN_FINALISTS] if scores[j] <= SCREEN_TIE * scores[best]]
+        if len(levels) > 1 and len(finalists) > 1:
+            short = replace(levels[1], max_iter=SCREEN_SECOND_ITER)
+            second = [problem.solve_level(short, tries[j][0], tries[j][1], (mid, mid), name(1) + " (screening)")
+                      for j in finalists]
+            k = int(np.argmin([problem.screen_score(levels[1], p[-1], t, r["energy"]) for p, t, r in second]))
+            best, resume = finalists[k], second[k]  # the second level goes on from the winner's short one
+    (path, transform, first), initial = tries[best], candidates[best][1]
+    if resume is not None:
+        path, transform = resume[0], resume[1]
+    elif screen is not levels[0]:
+        path, transform, first = problem.solve_level(levels[0], path, transform, (mid, bounds[1]), name(0))
+    report = [first]
+    monitor.report(bounds[1], f"{name(0)} done", first["objective"])
+    for k in range(1, len(levels)):
+        span = (bounds[k], bounds[k + 1])
+        if k == 1 and tries_poses:
+            path, transform, share = try_poses(problem, basis, levels[1], levels[min(2, len(levels) - 1)], path,
+                                                transform, poses, span, name(1))
+            span = (span[0] + share * (span[1] - span[0]), span[1])
+        path, transform, lv_report = problem.solve_level(levels[k], path, transform, span, name(k))
+        report.append(lv_report)
+        monitor.report(bounds[k + 1], f"{name(k)} done", lv_report["objective"])
+
+    code = path[-1]
+    decoded = basis.template + np.tensordot(code, basis.fields, axes=1)
+    vertices = transform.invert(decoded)
+    used = sv if face_w is None else sv[np.unique(sf[face_w > 0])]
+    return RegistrationResult(code=code, vertices=vertices, path=path, transform=transform, levels=report,
+                              varifold=report[-1]["varifold"], chamfer=chamfer(vertices, used),
+                              seconds=time.perf_counter() - start_time, prealignment=initial)

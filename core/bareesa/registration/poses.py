@@ -1,0 +1,82 @@
+r"""Pose candidates: typical poses tried as starts of the second level (``try_poses``).
+
+The first level cannot find a pose far from the template (at coarse sigma raising an arm overhead
+costs more energy than it gains in data term, so an elbow bends instead, and the finer levels keep
+that local minimum). A basis may store typical poses (``extras["pose_prototypes"]``, k-means
+centres of its training codes); before the second level each one's pose group, with the other
+groups of the code so far, is re-aligned to the scan and scored at the second level's sigma; the
+best few get a short second level next to the current path, and the one that fits best at the next
+level's sigma goes on.
+"""
+
+from dataclasses import replace
+
+import numpy as np
+
+from ..errors import InputError
+
+#: Pose candidates (a basis' stored ``pose_prototypes``, see ``try_poses``): before the second level each
+#: prototype's pose coefficients, with the code's other groups, are re-aligned to the scan (at most
+#: POSE_ALIGN_ITER L-BFGS steps) and scored at the second level's sigma with POSE_WEIGHT_GAIN x its
+#: weight (the level's own weight prefers a bent elbow to an arm raised overhead: less energy); the best
+#: POSE_FINALISTS within POSE_TIE x the current code's score get a short solve at that weight (POSE_ITER
+#: iterations) next to the current path; the one that fits best at the next level's sigma goes on at
+#: the level's own weight.
+POSE_FINALISTS = 2
+POSE_TIE = 2.0
+POSE_ITER = 40
+POSE_WEIGHT_GAIN = 10.0
+
+
+def check_pose_candidates(basis, candidates):
+    """Pose candidates (K, P) float64 from ``register``'s argument, or None."""
+    if isinstance(candidates, str):
+        if candidates != "auto":
+            raise InputError(f"pose_candidates must be 'auto', None or an array of codes, got {candidates!r}")
+        candidates = basis.extras.get("pose_prototypes")
+    if candidates is None:
+        return None
+    codes = np.asarray(candidates, dtype=np.float64)
+    if codes.ndim != 2 or codes.shape[1] != basis.n_fields or not np.isfinite(codes).all():
+        raise InputError(f"pose candidates must be finite codes of shape (K, {basis.n_fields}), got {codes.shape}")
+    return codes if len(codes) else None
+
+
+def pose_starts(basis, candidates, code):
+    """Start codes from pose candidates: each candidate's "pose" group with ``code``'s other groups
+    (the candidates themselves when the basis has no "pose" group or nothing else): (K, P), (P,) -> (K, P)."""
+    starts = np.array(candidates, dtype=np.float64)
+    if "pose" in basis.groups and len(basis.groups) > 1:
+        keep = np.ones(basis.n_fields, dtype=bool)
+        keep[basis.group_slice("pose")] = False
+        starts[:, keep] = code[keep]
+    return starts
+
+
+
+def try_poses(problem, basis, level, judge, path, transform, candidates, progress, message):
+    """The pose-candidate stage before ``level`` (see POSE_FINALISTS): -> (path, transform, share of
+    ``progress`` used). The path returned is the best short solve, or ``path`` when no candidate is close.
+
+    Every start (the current end code and each candidate) is first re-aligned to the scan on its own
+    (``CoarseVarifold`` at the level's sigma, from the current alignment): the pre-alignment matched
+    the scan's centroid and RMS radius to the template's, which a raised arm shifts by several cm.
+    """
+    code = path[-1]
+    level = replace(level, weight=level.weight * POSE_WEIGHT_GAIN)
+    starts = pose_starts(basis, candidates, code)
+    aligned, scores = zip(*problem.realign(level, [code, *starts], transform))
+    scores = np.array(scores)
+    pick = [int(j) for j in np.argsort(scores[1:])[:POSE_FINALISTS] if scores[1 + j] <= POSE_TIE * scores[0]]
+    total = (POSE_FINALISTS + 1) * level.steps * POSE_ITER
+    full = level.steps * level.max_iter + total
+    if not pick:
+        return path, transform, 0.0
+    short = replace(level, max_iter=POSE_ITER)
+    lo, hi = progress
+    step = (hi - lo) * total / full / (len(pick) + 1)
+    firsts = [(path, aligned[0])] + [(np.stack([np.zeros_like(code), starts[j]]), aligned[1 + j]) for j in pick]
+    tries = [problem.solve_level(short, p, t, (lo + i * step, lo + (i + 1) * step),
+                                 f"{message} (pose {i + 1}/{len(pick) + 1})") for i, (p, t) in enumerate(firsts)]
+    best = int(np.argmin([problem.screen_score(judge, p[-1], t, r["energy"]) for p, t, r in tries]))
+    return tries[best][0], tries[best][1], total / full

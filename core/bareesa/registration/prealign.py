@@ -1,0 +1,179 @@
+r"""Rigid + uniform-scale pre-alignment of a scan to a template, from any initial orientation.
+
+Both surfaces are normalised (area-weighted centroid, RMS radius); candidate rotations map the
+principal axes of the scan's area-weighted second moments onto the template's (the 24 proper
+signed permutations, so near-equal moments and any axis order are covered) plus the identity;
+each is scored by a coarse binet varifold (faces binned into cubic cells, each cell keeping its
+area-weighted centroid and orientation tensor sum a n n^T, which is exact for the binet kernel up
+to the binning of positions); the best few are refined by L-BFGS over (axis-angle, translation,
+log-scale) at a coarse then a finer sigma. The binet kernel ignores normal orientation, so
+inconsistently oriented scans align as well.
+"""
+
+import math
+from itertools import permutations, product
+
+import numpy as np
+import torch
+
+from ..errors import MeshError
+from ..optimize import minimize_lbfgs
+from ..progress import Monitor
+from ..transforms import Similarity, axis_angle_rotation, rotation_angle
+
+#: Pre-alignment sigmas (scoring/refinement, final refinement), in units of the RMS radius.
+PREALIGN_SIGMAS = (0.5, 0.25)
+PREALIGN_CELL = 0.5         # bin size of the binned measure, in units of its sigma
+PREALIGN_REFINE = 8         # candidates refined at the coarse sigma
+PREALIGN_KEEP = 6           # distinct ones refined at the finer sigma and tried by the first level
+PREALIGN_DISTINCT = 20.0    # degrees between two distinct candidates
+PREALIGN_RATIO = 4.0        # candidates whose varifold is within this factor of the best's are tried
+PREALIGN_MAX_ITER = 40
+
+
+def surface_moments(verts, faces, face_weights=None):
+    """Weighted area, centroid (3,) and second moment about it (3, 3) of a surface: exact integrals.
+
+    verts (N, 3), faces (F, 3), face_weights (F,) or None; the second moment is
+    int (x - c)(x - c)^T dA / A, so sqrt of its trace is the RMS radius.
+    """
+    p = np.asarray(verts, dtype=np.float64)[np.asarray(faces)]
+    a = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    if face_weights is not None:
+        a = a * face_weights
+    total = a.sum()
+    if not total > 0:
+        raise MeshError("the scan has zero (weighted) surface area; nothing to register")
+    center = (a[:, None] * p.mean(1)).sum(0) / total
+    q = p - center
+    s = q.sum(1)
+    # int over a triangle of x x^T = A/12 (sum_i q_i q_i^T + s s^T), s = sum_i q_i
+    second = np.einsum("f,fik,fil->kl", a, q, q) + np.einsum("f,fk,fl->kl", a, s, s)
+    return float(total), center, second / (12.0 * total)
+
+
+def coarse_measure(points, faces, face_weights, cell):
+    """Faces binned into cubic cells -> centroids (C, 3), orientation tensors sum a n n^T (C, 9)."""
+    p = points[faces]
+    cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    norm = np.linalg.norm(cross, axis=1)
+    a = 0.5 * norm * (1.0 if face_weights is None else face_weights)
+    keep = a > 0
+    a, n, c = a[keep], cross[keep] / norm[keep, None], p[keep].mean(1)
+    _, inv = np.unique(np.floor(c / cell).astype(np.int64), axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    area = np.bincount(inv, a)
+    x = np.stack([np.bincount(inv, a * c[:, k]) for k in range(3)], 1) / area[:, None]
+    nn = a[:, None] * (n[:, :, None] * n[:, None, :]).reshape(-1, 9)
+    tensors = np.stack([np.bincount(inv, nn[:, k]) for k in range(9)], 1)
+    return torch.from_numpy(x), torch.from_numpy(tensors)
+
+
+class CoarseVarifold:
+    """Binet varifold of binned measures against a fixed target; the source moves by a similarity."""
+
+    def __init__(self, target, source, sigma):
+        self.g = 1.0 / sigma**2
+        self.xt, self.st = target
+        self.xs, self.ss = source
+        self.self_t = float(self._inner(self.xt, self.st, self.xt, self.st))
+
+    def _inner(self, x, s, y, t):
+        d2 = ((x * x).sum(1)[:, None] + (y * y).sum(1)[None, :] - 2 * x @ y.T).clamp_min(0)
+        return (torch.exp(-self.g * d2) * (s @ t.T)).sum()
+
+    def __call__(self, params, base):
+        """Squared distance after x -> e^l R(w) base x + tau; params (w, tau, l) (7,) tensor."""
+        r = axis_angle_rotation(params[:3]) @ base
+        scale = torch.exp(params[6])
+        x = scale * self.xs @ r.T + params[3:6]
+        s = (scale**2 * (r @ self.ss.reshape(-1, 3, 3) @ r.T)).reshape(-1, 9)
+        return self.self_t - 2 * self._inner(x, s, self.xt, self.st) + self._inner(x, s, x, s)
+
+
+
+def _candidate_rotations(axes_t, axes_s):
+    """Rotations mapping the scan's principal axes onto the template's (24) plus the identity."""
+    out = []
+    for perm in permutations(range(3)):
+        for signs in product((1.0, -1.0), repeat=3):
+            q = np.zeros((3, 3))
+            q[list(perm), range(3)] = signs
+            r = axes_t @ q @ axes_s.T
+            if np.linalg.det(r) > 0:
+                out.append(r)
+    out.append(np.eye(3))
+    return out
+
+
+
+def prealign_candidates(template_verts, template_faces, scan_verts, scan_faces, scan_face_weights=None,
+                        keep=PREALIGN_KEEP, monitor=None, progress=(0.0, 1.0)):
+    """Distinct candidate alignments of a scan to a template, best first: -> [(varifold, Similarity)].
+
+    template (N, 3), (F, 3); scan (M, 3), (G, 3); scan_face_weights (G,) or None (zero-weight
+    faces are ignored). Each Similarity maps scan coordinates into the template frame; the
+    varifold is the (binned, binet) squared distance at the finer pre-alignment sigma between
+    the normalised template and the mapped scan. At most ``keep`` candidates, pairwise more
+    than PREALIGN_DISTINCT degrees apart.
+    """
+    monitor = monitor or Monitor("prealign")
+    lo, hi = progress
+    tv, tf = np.asarray(template_verts, np.float64), np.asarray(template_faces, np.int64)
+    sv, sf = np.asarray(scan_verts, np.float64), np.asarray(scan_faces, np.int64)
+    _, ct, mt = surface_moments(tv, tf)
+    _, cs, ms = surface_moments(sv, sf, scan_face_weights)
+    rho_t, rho_s = math.sqrt(np.trace(mt)), math.sqrt(np.trace(ms))
+    yt, zs = (tv - ct) / rho_t, (sv - cs) / rho_s
+    candidates = _candidate_rotations(np.linalg.eigh(mt)[1], np.linalg.eigh(ms)[1])
+
+    def measures(sigma):
+        cell = PREALIGN_CELL * sigma
+        return (coarse_measure(yt, tf, None, cell), coarse_measure(zs, sf, scan_face_weights, cell))
+
+    coarse = CoarseVarifold(*measures(PREALIGN_SIGMAS[0]), PREALIGN_SIGMAS[0])
+    zero = torch.zeros(7, dtype=torch.float64)
+    scores = []
+    for r in candidates:
+        monitor.check()
+        with torch.no_grad():
+            scores.append(float(coarse(zero, torch.from_numpy(r))))
+    span = (hi - lo) / (PREALIGN_REFINE + keep + 1)
+    monitor.report(lo + span, "pre-alignment: candidates scored", min(scores))
+
+    def refine(obj, r, x0, k):
+        x, value, _ = minimize_lbfgs(lambda p: obj(p, torch.from_numpy(r)), x0, monitor,
+                                     max_iter=PREALIGN_MAX_ITER, progress=(lo + k * span, lo + (k + 1) * span),
+                                     message="pre-alignment", gtol=1e-9, ftol=1e-10)
+        return axis_angle_rotation(x[:3]) @ r, x, value
+
+    stage = []
+    for k, i in enumerate(np.argsort(scores)[:PREALIGN_REFINE]):
+        r, x, value = refine(coarse, candidates[i], np.zeros(7), k + 1)
+        stage.append((value, r, x))
+    stage.sort(key=lambda s: s[0])
+    distinct = []
+    for value, r, x in stage:
+        if all(rotation_angle(r, d[1]) > PREALIGN_DISTINCT for d in distinct):
+            distinct.append((value, r, x))
+    fine = CoarseVarifold(*measures(PREALIGN_SIGMAS[1]), PREALIGN_SIGMAS[1])
+    out = []
+    for k, (_, r0, x0) in enumerate(distinct[:keep]):
+        x0 = np.concatenate([np.zeros(3), x0[3:]])
+        r, x, value = refine(fine, r0, x0, PREALIGN_REFINE + 1 + k)
+        scale = rho_t * math.exp(x[6]) / rho_s
+        out.append((value / fine.self_t, Similarity(r, scale, ct + rho_t * x[3:6] - scale * r @ cs)))
+    out.sort(key=lambda c: c[0])
+    monitor.report(hi, "pre-alignment done", out[0][0])
+    return out
+
+
+def align_to_template(template_verts, template_faces, scan_verts, scan_faces, scan_face_weights=None,
+                      monitor=None, progress=(0.0, 1.0)):
+    """Rigid + uniform-scale alignment of a scan to a template from any initial orientation.
+
+    template (N, 3), (F, 3); scan (M, 3), (G, 3); scan_face_weights (G,) or None -> the
+    Similarity mapping scan coordinates into the template frame (best of ``prealign_candidates``).
+    """
+    return prealign_candidates(template_verts, template_faces, scan_verts, scan_faces, scan_face_weights,
+                               keep=1, monitor=monitor, progress=progress)[0][1]

@@ -1,0 +1,342 @@
+r"""One level of the multiscale registration problem (paper section 4.1).
+
+The objective of a level is weight * [Gamma(S(F(alpha(1))), T(q)) + landmark term] + E(alpha) over
+a discrete latent path from 0 (``PathVariables``, preconditioned) and a small similarity S
+optimised jointly with it; ``RegistrationProblem`` holds what is constant across levels (template
+tensors, scan, landmarks, preconditioners) and solves, re-aligns and scores.
+"""
+
+import math
+import time
+
+import numpy as np
+import torch
+
+from .. import h2_metric
+from ..errors import InputError
+from ..latent import decode, time_whitening, whitening
+from ..optimize import minimize_lbfgs
+from ..transforms import Similarity, axis_angle_rotation
+from ..varifold import KERNELS, VarifoldLoss, default_cutoff, varifold_measure
+from .prealign import PREALIGN_CELL, CoarseVarifold, coarse_measure, surface_moments
+
+#: L-BFGS stops a level when an iteration lowers the objective by less than this relative amount
+#: (the objective is dominated by weight x varifold; later digits only polish the path's interior)
+LEVEL_FTOL = 1e-9
+#: ... and when it fell by less than LEVEL_PLATEAU[1] (relative) over the last LEVEL_PLATEAU[0]
+#: iterations: easy problems plateau within ~15 iterations, a body in a new pose needs ~100
+LEVEL_PLATEAU = (5, 1e-3)
+BIN_CELL = 0.4              # cell size of the binned varifold, in units of sigma
+BIN_GAIN = 0.05             # "auto" bins a level when that leaves at most this share of face pairs
+#: Unbinned levels: truncation tolerance of the varifold kernel (cutoff sigma sqrt(log(1/tol)),
+#: relative error of d^2 ~1e-6 at paper scale) and cell size, in units of sigma, of the scan's
+#: ``binned_measure`` (None: the scan's faces are used as they are)
+FINE_TOL = 1e-4
+SCAN_CELL = 0.5
+#: a level changes the similarity's scale by at most this factor (log): pre-alignment matched the
+#: surface areas, and a free scale let wrong alignments grow the template over the scan (x1.9)
+SCALE_LOG_LIMIT = math.log(1.15)
+#: screened alignments are compared on cells of this x sigma (both surfaces): the level's own coarse
+#: binning (BIN_CELL) errs differently per alignment
+SCREEN_CELL = 0.25
+#: L-BFGS steps of the re-alignment of a candidate start (``RegistrationProblem.realign``)
+POSE_ALIGN_ITER = 15
+
+
+def log_scale(l):
+    """A level's log-scale change (tensor), bounded smoothly to +-SCALE_LOG_LIMIT (the objective and
+    ``_delta_similarity`` share it)."""
+    return SCALE_LOG_LIMIT * torch.tanh(l / SCALE_LOG_LIMIT)
+
+
+def delta_similarity(params, center, units):
+    """Similarity x -> c + e^l R(w) (x - c) + tau of params (w, tau, l) / units (7,) numpy."""
+    p = np.asarray(params) * units
+    r = axis_angle_rotation(p[:3])
+    s = float(torch.exp(log_scale(torch.tensor(float(p[6]), dtype=torch.float64))))
+    return Similarity(r, s, center - s * r @ center + p[3:6])
+
+
+# --------------------------------------------------------------------------- binned varifold
+
+
+def _cell_groups(points, cell):
+    """Index of the cubic cell of each point: (F, 3) numpy -> groups (F,) int64, number of cells."""
+    _, inv = np.unique(np.floor(points / cell).astype(np.int64), axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    return inv, int(inv.max()) + 1
+
+
+def _binned_measure(centers, normals, areas, groups, n_groups, kernel):
+    """Sums of a face measure over groups -> centroids (C, 3), kernel features (C, K).
+
+    The features make the orientation kernel a dot product, so a group of faces is exact for it:
+    binet (n.n')^2 = <n n^T, n' n'^T>: sum a n n^T (9); linear: sum a n (3); constant: sum a (1).
+    """
+    total = areas.new_zeros(n_groups).index_add(0, groups, areas)
+    moment = centers.new_zeros(n_groups, 3).index_add(0, groups, areas[:, None] * centers)
+    x = moment / total.clamp_min(torch.finfo(total.dtype).tiny)[:, None]
+    if kernel == "binet":
+        per_face = (normals[:, :, None] * normals[:, None, :]).reshape(-1, 9)
+    elif kernel == "linear":
+        per_face = normals
+    else:
+        per_face = torch.ones_like(areas)[:, None]
+    feat = areas.new_zeros(n_groups, per_face.shape[1]).index_add(0, groups, areas[:, None] * per_face)
+    return x, feat
+
+
+class BinnedVarifoldLoss:
+    """Squared varifold distance with both measures summed over cubic cells of size BIN_CELL x sigma.
+
+    For sigma much larger than the faces (the coarse levels of a schedule) this replaces
+    F x (F + G) face pairs by C x (C + D) cell pairs. The target (scan) is binned once; the
+    source's faces are grouped once (by their cells at construction) and each call sums the
+    moving faces over these fixed groups (differentiable). Orientation is exact; positions are
+    approximated by each group's centroid (relative kernel error ~ (cell / sigma)^2 / 4).
+    """
+
+    def __init__(self, source_verts, faces, target_verts, target_faces, sigma, kernel="binet",
+                 target_weights=None, cell=None):
+        if kernel not in KERNELS:
+            raise InputError(f"unknown varifold kernel {kernel!r}; choose one of {sorted(KERNELS)}")
+        self.g, self.kernel = 1.0 / sigma**2, kernel
+        cell = BIN_CELL * sigma if cell is None else cell
+        centers = varifold_measure(source_verts.detach(), faces)[0]
+        groups, self.n_groups = _cell_groups(centers.cpu().numpy(), cell)
+        self.groups = torch.as_tensor(groups, device=source_verts.device)
+        c, n, a = varifold_measure(target_verts, target_faces, target_weights)
+        t_groups, n_t = _cell_groups(c.cpu().numpy(), cell)
+        x, feat = _binned_measure(c, n, a, torch.as_tensor(t_groups, device=c.device), n_t, kernel)
+        keep = feat.abs().sum(1) > 0
+        self.target = (x[keep], feat[keep])
+        self.n_target = int(keep.sum())
+        self._self_t = None
+
+    @property
+    def self_t(self):
+        """|target|^2 (computed on first use: callers may first only look at the sizes)."""
+        if self._self_t is None:
+            with torch.no_grad():
+                self._self_t = self._inner(*self.target, *self.target)
+        return self._self_t
+
+    def _inner(self, x, f, y, h, chunk=2**22):
+        out = x.new_zeros(())
+        rows = max(1, chunk // max(1, y.shape[0]))
+        y2 = (y * y).sum(1)[None, :]
+        for s in range(0, x.shape[0], rows):
+            xs = x[s:s + rows]
+            d2 = ((xs * xs).sum(1)[:, None] + y2 - 2 * xs @ y.T).clamp_min(0)
+            out = out + (torch.exp(-self.g * d2) * (f[s:s + rows] @ h.T)).sum()
+        return out
+
+    def __call__(self, verts, faces):
+        """Squared binned distance of the mesh (verts (N, 3), faces (F, 3)) to the target -> scalar."""
+        x, f = _binned_measure(*varifold_measure(verts, faces), self.groups, self.n_groups, self.kernel)
+        return self._inner(x, f, x, f) - 2 * self._inner(x, f, *self.target) + self.self_t
+
+
+def resample_in_time(path, steps):
+    """Linear resampling in time of a latent path from 0: (T+1, P) -> (steps+1, P)."""
+    path = np.asarray(path, dtype=np.float64)
+    t_old = np.linspace(0.0, 1.0, path.shape[0])
+    t_new = np.linspace(0.0, 1.0, steps + 1)
+    return np.stack([np.interp(t_new, t_old, path[:, i]) for i in range(path.shape[1])], 1)
+
+
+class PathVariables:
+    """The latent path (T+1, P) from 0 as optimisation variables v (T, P): the end code
+    alpha(1) = v_0 B and the deviations of alpha(k/T) from the straight line k/T alpha(1),
+    d = sqrt(1/T) R^-1 v_1.. B (k = 1..T-1), with B, R^-1 the metric and time whitenings
+    (``latent.whitening``, ``latent.time_whitening``).
+
+    The end code carries the stiff varifold term, the deviations only the path energy, so the
+    blocks decouple; in whitened coordinates the path energy is close to |v|^2 and L-BFGS
+    converges in far fewer iterations than on the raw path.
+    """
+
+    def __init__(self, steps, whiten_end, whiten_path):
+        self.steps = steps
+        self.b_end, self.b = np.asarray(whiten_end, np.float64), np.asarray(whiten_path, np.float64)
+        self.r_inv = time_whitening(steps - 1) * math.sqrt(1.0 / steps) if steps > 1 else np.zeros((0, 0))
+        self.ramp = np.linspace(0.0, 1.0, steps + 1)[:, None]
+        self._t = {}
+
+    def _tensors(self, like):
+        key = (like.dtype, like.device)
+        if key not in self._t:
+            self._t[key] = tuple(torch.as_tensor(a, dtype=like.dtype, device=like.device)
+                                 for a in (self.b_end, self.b, self.r_inv, self.ramp))
+        return self._t[key]
+
+    def path(self, v):
+        """Variables (T, P) tensor -> path (T+1, P) tensor."""
+        b_end, b, r_inv, ramp = self._tensors(v)
+        zero = v.new_zeros(1, v.shape[1])
+        return ramp * (v[:1] @ b_end) + torch.cat([zero, r_inv @ v[1:] @ b, zero])
+
+    def variables(self, path):
+        """Inverse of ``path``: path (T+1, P) numpy from 0 -> variables (T, P) numpy."""
+        dev = (path - self.ramp * path[-1])[1:-1]
+        inner = np.linalg.solve(self.r_inv, dev) @ np.linalg.inv(self.b) if len(dev) else dev
+        return np.concatenate([path[-1:] @ np.linalg.inv(self.b_end), inner])
+
+
+def _normal_gram(verts, faces, fields):
+    """N_ij = sum_v A_v (h_i . n_v)(h_j . n_v): the L2 metric of the fields' normal components at the
+    template: (N, 3), (F, 3), (P, N, 3) -> (P, P) numpy."""
+    p = verts[faces]
+    cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    normals = np.zeros_like(verts)
+    for k in range(3):
+        np.add.at(normals, faces[:, k], cross)
+    area = np.linalg.norm(normals, axis=1) / 6  # |sum of adjacent a_f n_f| / 3, a_f = |cross| / 2
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    hn = np.einsum("pvk,vk->pv", fields, normals)
+    return (hn * area) @ hn.T
+
+
+class RegistrationProblem:
+    """The constant parts of a registration (template tensors, scan, landmarks) and one level's solve."""
+
+    def __init__(self, basis, sv, sf, face_w, marks, landmark_weight, metric, kernel, backend, binning,
+                 refine_transform, dtype, device, monitor):
+        self.binning = binning
+        self.template, self.faces, self.fields = basis.tensors(dtype=dtype, device=device)
+        area, self.center, _ = surface_moments(basis.template, basis.faces)
+        self.center_t = torch.as_tensor(self.center, dtype=dtype, device=device)
+        # preconditioning (see PathVariables): the path's interior is whitened by the latent
+        # metric at the template, the end code by an estimate of the level's Hessian
+        self.gram = basis.template_metric(metric)
+        self.whiten = whitening(self.gram)
+        self.normal_gram = _normal_gram(basis.template, basis.faces, basis.fields)
+        self.radius = math.sqrt(((basis.template - self.center) ** 2).sum(-1).mean())
+        self.scan, self.scan_faces = sv, torch.as_tensor(sf, dtype=torch.long, device=device)
+        self.scan_weights = None if face_w is None else torch.as_tensor(face_w, dtype=dtype, device=device)
+        self.marks = marks
+        if marks is not None:
+            self.lm_idx = torch.as_tensor(marks[0], device=device)
+            self.lm_w = torch.as_tensor(marks[2] / marks[2].sum() * landmark_weight * area, dtype=dtype,
+                                        device=device)
+        self.metric, self.kernel, self.backend = metric, kernel, backend
+        self.n_extra = 7 if refine_transform else 0
+        self.dtype, self.device, self.monitor = dtype, device, monitor
+        self.scale, self.n_fields = basis.scale, basis.n_fields
+        self.fields_np = basis.fields
+
+    def realign(self, level, codes, transform):
+        """The alignment refined for each surface F(code) at ``level``'s sigma (binned binet varifold,
+        rotation, translation and a bounded log-scale about the template's centre): codes (K, P) ->
+        [(Similarity, weight * Gamma + energy of the straight path 0 -> code)], Gamma on the coarse cells."""
+        sigma = level.sigma * self.scale
+        cell = PREALIGN_CELL * sigma
+        weights = None if self.scan_weights is None else self.scan_weights.detach().cpu().numpy()
+        scan = coarse_measure(transform.apply(self.scan) - self.center, self.scan_faces.cpu().numpy(), weights, cell)
+        faces, eye = self.faces.cpu().numpy(), torch.eye(3, dtype=torch.float64)
+        out = []
+        for code in codes:
+            self.monitor.check()
+            with torch.no_grad():
+                verts = decode(self.template, self.fields, torch.as_tensor(code, dtype=self.dtype, device=self.device))
+            verts = verts.detach().cpu().numpy().astype(np.float64) - self.center
+            coarse = CoarseVarifold(scan, coarse_measure(verts, faces, None, cell), sigma)
+            x, gamma, _ = minimize_lbfgs(lambda p: coarse(torch.cat([p[:6], log_scale(p[6:])]), eye), np.zeros(7),
+                                         max_iter=POSE_ALIGN_ITER, gtol=1e-9, ftol=1e-10)
+            # F(code) moved by S: x -> e^l R (x - c) + tau + c; the scan moves by the inverse instead
+            scale = math.exp(float(log_scale(torch.as_tensor(x[6]))))
+            rot = axis_angle_rotation(x[:3])
+            move = Similarity(rot, scale, x[3:6] + self.center - scale * rot @ self.center)
+            out.append((move.inverse().compose(transform), level.weight * gamma + self.straight_energy(level, code)))
+        return out
+
+    def straight_energy(self, level, code):
+        """Energy of the straight path 0 -> code in ``level.steps`` steps: (P,) -> float."""
+        with torch.no_grad():
+            code = torch.as_tensor(code, dtype=self.dtype, device=self.device)
+            ramp = torch.linspace(0, 1, level.steps + 1, dtype=self.dtype, device=self.device)[:, None]
+            return float(h2_metric.path_energy(decode(self.template, self.fields, ramp * code), self.faces,
+                                               self.metric))
+
+    def screen_score(self, level, code, transform, energy):
+        """weight * Gamma + energy of a solved path at ``level``'s sigma and weight, Gamma on a
+        binning of both surfaces with cells of SCREEN_CELL x sigma.
+
+        A level's objective bins with cells of BIN_CELL x sigma; its error (a difference of large
+        kernel sums) depends on how each alignment falls on the cells, enough to rank a wrong
+        alignment first: finer cells make the objective comparable across alignments.
+        code (P,), transform: the end of a ``solve_level`` result; energy: its path energy -> float.
+        """
+        sigma = level.sigma * self.scale
+        target = torch.as_tensor(transform.apply(self.scan), dtype=self.dtype, device=self.device)
+        code = torch.as_tensor(code, dtype=self.dtype, device=self.device)
+        with torch.no_grad():
+            final = decode(self.template, self.fields, code)
+            loss = BinnedVarifoldLoss(final, self.faces, target, self.scan_faces, sigma, self.kernel,
+                                      self.scan_weights, cell=SCREEN_CELL * sigma)
+            return level.weight * float(loss(final, self.faces)) + energy
+
+    def solve_level(self, level, path, transform, progress, message):
+        """Minimise one level from path (T0+1, P) and the alignment -> (path (T+1, P), alignment, report)."""
+        t0 = time.perf_counter()
+        self.monitor.check()
+        dtype, device, p_dim, steps = self.dtype, self.device, self.n_fields, level.steps
+        sigma = level.sigma * self.scale
+        target = torch.as_tensor(transform.apply(self.scan), dtype=dtype, device=device)
+        loss = None
+        if self.binning:
+            code = torch.as_tensor(path[-1], dtype=dtype, device=device)
+            loss = BinnedVarifoldLoss(decode(self.template, self.fields, code), self.faces, target,
+                                      self.scan_faces, sigma, self.kernel, self.scan_weights)
+            n_s, n_t = self.faces.shape[0], self.scan_faces.shape[0]
+            pairs = loss.n_groups * (loss.n_groups + loss.n_target)
+            if self.binning == "auto" and pairs > BIN_GAIN * n_s * (n_s + n_t):
+                loss = None
+        binned = loss is not None
+        if not binned:
+            loss = VarifoldLoss(target, self.scan_faces, sigma, kernel=self.kernel, backend=self.backend,
+                                target_weights=self.scan_weights, cutoff=default_cutoff(sigma, FINE_TOL),
+                                target_cell=None if SCAN_CELL is None else SCAN_CELL * sigma)
+        if self.marks is not None:
+            lm_pts = torch.as_tensor(transform.apply(self.marks[1]), dtype=dtype, device=device)
+        terms = {}
+
+        def objective(x):
+            x = x.to(dtype=dtype, device=device)
+            alpha = variables.path(x[:steps * p_dim].reshape(steps, p_dim))
+            meshes = decode(self.template, self.fields, alpha)
+            energy = h2_metric.path_energy(meshes, self.faces, self.metric)
+            final = meshes[-1]
+            if self.n_extra:
+                p = x[steps * p_dim:] * units_t
+                final = (self.center_t + torch.exp(log_scale(p[6])) * (final - self.center_t) @ axis_angle_rotation(p[:3]).T
+                         + p[3:6])
+            gamma = loss(final, self.faces)
+            fit = gamma
+            if self.marks is not None:
+                fit = fit + (self.lm_w * ((final[self.lm_idx] - lm_pts) ** 2).sum(1)).sum()
+            terms.update(energy=energy, gamma=gamma)
+            return level.weight * fit + energy
+
+        # the varifold of a surface offset by d along its normals is ~ 2 pi int d^2 (any sigma), so
+        # weight * Gamma has Hessian ~ 4 pi weight N in the code (N = normal_gram) next to G-bar
+        whiten_end = whitening(self.gram + 4 * math.pi * level.weight * self.normal_gram)
+        variables = PathVariables(steps, whiten_end, self.whiten)
+        # similarity variables scaled so that a unit step moves the surface about as much as a
+        # unit step of the (whitened) end code: a well-conditioned joint problem
+        move = math.sqrt((np.tensordot(whiten_end, self.fields_np, axes=1) ** 2).sum(-1).mean())
+        units = np.array([move / self.radius] * 3 + [move] * 3 + [move / self.radius])
+        units_t = torch.as_tensor(units, dtype=dtype, device=device)
+        x0 = np.concatenate([variables.variables(resample_in_time(path, steps)).ravel(), np.zeros(self.n_extra)])
+        x, value, nit = minimize_lbfgs(objective, x0, self.monitor, max_iter=level.max_iter,
+                                       progress=progress, message=message, ftol=LEVEL_FTOL, plateau=LEVEL_PLATEAU)
+        with torch.no_grad():
+            objective(torch.from_numpy(x))
+        path = variables.path(torch.from_numpy(x[:steps * p_dim].reshape(steps, p_dim))).numpy()
+        if self.n_extra:
+            delta = delta_similarity(x[steps * p_dim:], self.center, units)
+            transform = delta.inverse().compose(transform)
+        return path, transform, {"sigma": float(sigma), "weight": float(level.weight), "steps": int(steps),
+                                 "iterations": int(nit), "energy": float(terms["energy"]),
+                                 "varifold": float(terms["gamma"]), "objective": float(value),
+                                 "binned": binned, "seconds": time.perf_counter() - t0}
