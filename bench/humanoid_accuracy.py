@@ -242,8 +242,10 @@ def render(ax, verts, faces, elev=8, azim=-90, color=(0.75, 0.78, 0.85)):
     """Flat-shaded matplotlib rendering of a mesh into a 3D axis."""
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
+    from bareesa.mesh import face_geometry
+
     p = verts[faces]
-    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    n = face_geometry(verts, faces)[0]
     n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
     light = np.array([0.35, -0.85, 0.4])
     shade = 0.25 + 0.75 * np.clip(n @ (light / np.linalg.norm(light)), 0, 1)

@@ -9,9 +9,10 @@ import pytest
 from bareesa.errors import InputError
 from bareesa.evaluation import chamfer
 from bareesa.mesh import load_mesh, save_mesh, surface_center_radius, validate_mesh
-from bareesa.scan_simulator import (add_simulate_scan_arguments, apply_similarity, simulate_scan,
-                                 simulate_scan_cli, undo_similarity)
+from bareesa.scan_simulator import (add_simulate_scan_arguments, apply_similarity, info_to_json, simulate_scan,
+                                    simulate_scan_cli, undo_similarity)
 from bareesa.synthetic import blob_mesh
+from bareesa.transforms import Similarity
 
 
 @pytest.fixture(scope="module")
@@ -68,6 +69,18 @@ def test_rigid_motion_and_scale_are_recorded_exactly(blob):
     assert d.max() < 1e-9
     assert np.allclose(apply_similarity(info, back), sv)
     assert np.allclose(info["matrix"][:3, :3], info["scale"] * info["rotation"])
+
+
+def test_info_carries_one_similarity_that_survives_json(blob):
+    v, f = blob
+    sv, _, info = simulate_scan(v, f, seed=5, remesh=None, noise=0, holes=0, scale=0.3)
+    assert isinstance(info["similarity"], Similarity)
+    assert np.array_equal(info["matrix"], info["similarity"].matrix())
+    copy = json.loads(json.dumps(info_to_json(info)))
+    assert np.allclose(apply_similarity(copy, v), apply_similarity(info, v), rtol=0, atol=1e-12)
+    assert np.allclose(undo_similarity(copy, sv), undo_similarity(info, sv), rtol=0, atol=1e-12)
+    older = {k: x for k, x in copy.items() if k != "similarity"}  # rotation, scale, translation only
+    assert np.allclose(apply_similarity(older, v), apply_similarity(info, v), rtol=0, atol=1e-12)
 
 
 def test_no_rigid_keeps_the_frame(blob):

@@ -143,7 +143,7 @@ def geodesic_error(pred_points, true_vertex_ids, target_verts, target_faces, unf
 def varifold(verts_a, faces_a, verts_b, faces_b, sigma, kernel="binet"):
     """Squared varifold distance d_Var^2 between two meshes (clamped at 0 against round-off) -> float.
 
-    Calls ``core.varifold.varifold_distance`` in float64 on CPU.
+    Calls ``bareesa.varifold.varifold_distance`` in float64 on CPU.
     """
     import torch
 
@@ -160,7 +160,7 @@ def varifold(verts_a, faces_a, verts_b, faces_b, sigma, kernel="binet"):
 def default_sigma(verts, faces):
     """Default varifold scale: SIGMA_FRACTION x mesh size (2 x area-weighted RMS radius) -> float.
 
-    The size is the one ``core.mesh.normalise`` sets to ``size``, so a
+    The size is the one ``bareesa.mesh.normalise`` sets to ``size``, so a
     normalised mesh gets sigma = SIGMA_FRACTION (paper: 0.025 for faces, with
     mesh invariance from ~0.1 up, on unit-diameter surfaces).
     """

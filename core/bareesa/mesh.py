@@ -27,13 +27,14 @@ import os
 import re
 import tempfile
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 import trimesh
 
 from .errors import InputError, MeshError
+from .transforms import Similarity
 
 READ_FORMATS = (".ply", ".obj", ".stl", ".off")
 WRITE_FORMATS = (".ply", ".obj", ".stl")
@@ -261,7 +262,7 @@ def validate_mesh(verts, faces, name="mesh"):
     v, f = check_mesh(verts, faces, name)
     p = v[f]
     edge_sq = ((p - p[:, [1, 2, 0]]) ** 2).sum(-1)
-    areas = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    areas = face_geometry(v, f)[1]
     n_degenerate = int((areas <= DEGENERATE_TOL * edge_sq.mean()).sum())
     counts = _edge_counts(f)
     n_nonmanifold = int((counts > 2).sum())
@@ -288,11 +289,11 @@ def surface_center_radius(verts, faces):
     triangulations of the same surface give nearly the same values.
     """
     p = _numpy(verts).astype(np.float64)[_numpy(faces)]  # (F, 3, 3)
-    areas = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    _, areas, barycentres = face_geometry(verts, faces)
     total = areas.sum()
     if not total > 0:
         raise MeshError("mesh has zero surface area; cannot normalise it")
-    center = (areas[:, None] * p.mean(axis=1)).sum(0) / total
+    center = (areas[:, None] * barycentres).sum(0) / total
     q = p - center
     # integral of |x|^2 over a triangle = area/6 * (sum |q_i|^2 + sum_{i<j} q_i . q_j)
     second = (q * q).sum((1, 2)) + (q * q[:, [1, 2, 0]]).sum((1, 2))
@@ -301,15 +302,18 @@ def surface_center_radius(verts, faces):
 
 @dataclass(frozen=True, eq=False)
 class Normalisation:
-    """Similarity map x -> (x - center) / scale; one normalised unit is ``scale`` user units.
+    """The similarity x -> (x - center) / scale, recorded by its centre and scale; one normalised
+    unit is ``scale`` user units.
 
-    center: (3,) float64 array; scale: positive float. Lengths computed on
-    normalised meshes (distances, sigma) are multiplied by ``scale`` to get
-    user units.
+    center: (3,) float64 array; scale: positive float; ``similarity``: the same map as a
+    :class:`~bareesa.transforms.Similarity` (identity rotation, factor 1 / scale), which does the
+    maths. Lengths computed on normalised meshes (distances, sigma) are multiplied by ``scale``
+    to get user units.
     """
 
     center: np.ndarray
     scale: float
+    similarity: Similarity = field(init=False, repr=False)
 
     def __post_init__(self):
         c = np.array(self.center, dtype=np.float64).reshape(3)
@@ -318,19 +322,15 @@ class Normalisation:
         object.__setattr__(self, "scale", float(self.scale))
         if not (np.isfinite(c).all() and np.isfinite(self.scale) and self.scale > 0):
             raise InputError(f"invalid normalisation: center {c.tolist()}, scale {self.scale}")
-
-    def _center_like(self, points):
-        if isinstance(points, torch.Tensor):
-            return torch.tensor(self.center.tolist(), dtype=points.dtype, device=points.device)
-        return self.center
+        object.__setattr__(self, "similarity", Similarity(np.eye(3), 1.0 / self.scale, -c / self.scale))
 
     def apply(self, points):
         """User units -> normalised: (..., 3) ndarray or tensor -> same type."""
-        return (points - self._center_like(points)) / self.scale
+        return self.similarity.apply(points)
 
     def invert(self, points):
         """Normalised -> user units: (..., 3) ndarray or tensor -> same type."""
-        return points * self.scale + self._center_like(points)
+        return self.similarity.invert(points)
 
     def to_dict(self):
         """JSON-ready {"center": [x, y, z], "scale": s}."""

@@ -5,13 +5,14 @@ registration must be invariant to: another triangulation (``remesh``), sensor
 noise, holes, a partial view (``crop``), an unknown pose and scale (``rigid``,
 ``scale``) and clutter (a piece of floor under the feet). All amounts are
 relative to the mesh size, ``2 x`` the area-weighted RMS radius of the surface
-(the size ``core.mesh.normalise`` and ``core.evaluation.default_sigma`` use), so
+(the size ``bareesa.mesh.normalise`` and ``bareesa.evaluation.default_sigma`` use), so
 the same settings fit a 1.7 m body and a unit sphere.
 
 The result is seeded: the same input, options and seed give the same scan;
 every random step draws from its own stream, so switching one step on or off
-leaves the others unchanged. ``info`` records the similarity applied, so that a
-benchmark can map the ground truth into the scan's frame (:func:`apply_similarity`).
+leaves the others unchanged. ``info`` records the similarity applied (a
+:class:`~bareesa.transforms.Similarity`), so that a benchmark can map the ground
+truth into the scan's frame (:func:`apply_similarity`).
 
 Remeshing (no marching-cubes dependency):
 
@@ -34,7 +35,8 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .errors import InputError
-from .mesh import check_mesh, surface_center_radius
+from .mesh import check_mesh, face_geometry, surface_center_radius
+from .transforms import Similarity
 
 REMESH_CHOICES = ("voxel", "isotropic", "none")
 UP_AXES = {"x": 0, "y": 1, "z": 2}
@@ -56,14 +58,8 @@ def random_rotation_matrix(rng):
     return q
 
 
-def _face_areas(verts, faces):
-    p = verts[faces]
-    return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-
-
 def _vertex_normals(verts, faces):
-    p = verts[faces]
-    fn = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])  # area-weighted
+    fn = face_geometry(verts, faces)[0]  # area-weighted
     n = np.zeros_like(verts)
     for k in range(3):
         np.add.at(n, faces[:, k], fn)
@@ -151,7 +147,7 @@ def cluster_remesh(verts, faces, pitch, rng):
     cluster = cluster.ravel()
     n = int(cluster.max()) + 1
     w = np.zeros(len(fine_v))
-    area = _face_areas(fine_v, fine_f)
+    area = face_geometry(fine_v, fine_f)[1]
     for k in range(3):
         np.add.at(w, fine_f[:, k], area / 3.0)
     w = np.maximum(w, 1e-30)
@@ -193,8 +189,7 @@ def cut_holes(verts, faces, n_holes, radius, rng):
     """Remove the faces within ``radius`` of ``n_holes`` area-uniform random surface points."""
     if n_holes <= 0 or radius <= 0:
         return faces
-    centers = verts[faces].mean(1)
-    area = _face_areas(verts, faces)
+    _, area, centers = face_geometry(verts, faces)
     seeds = centers[rng.choice(len(faces), size=int(n_holes), p=area / area.sum())]
     d = np.linalg.norm(centers[:, None, :] - seeds[None, :, :], axis=2).min(1)
     return faces[d > radius]
@@ -208,8 +203,8 @@ def crop_view(verts, faces, fraction, rng):
         raise InputError(f"crop must be a fraction of the surface in [0, 1), got {fraction}")
     d = rng.normal(size=3)
     d /= np.linalg.norm(d)
-    h = verts[faces].mean(1) @ d
-    area = _face_areas(verts, faces)
+    _, area, centers = face_geometry(verts, faces)
+    h = centers @ d
     order = np.argsort(-h)
     removed = np.cumsum(area[order]) <= fraction * area.sum()
     keep = np.ones(len(faces), dtype=bool)
@@ -238,8 +233,7 @@ def floor_patch(verts, up, pitch, rng, margin=0.3):
     a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
     tri = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
     # orient so that normals point along +up
-    p = pts[tri]
-    normal_up = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])[:, up]
+    normal_up = face_geometry(pts, tri)[0][:, up]
     tri[normal_up < 0] = tri[normal_up < 0][:, [0, 2, 1]]
     return pts, tri
 
@@ -247,19 +241,23 @@ def floor_patch(verts, up, pitch, rng, margin=0.3):
 # ------------------------------------------------------------------------------ public
 
 
-def apply_similarity(info, points):
-    """Map points of the source mesh's frame into the scan's frame: (..., 3) -> (..., 3).
+def scan_similarity(info):
+    """The Similarity source frame -> scan frame of a simulate_scan ``info`` (or its JSON copy)."""
+    record = info.get("similarity", info)  # a JSON copy without it: rotation, scale, translation
+    return record if isinstance(record, Similarity) else Similarity.from_dict(record)
 
-    x_scan = scale * R x + t with ``info['rotation']``, ``info['translation']``, ``info['scale']``.
+
+def apply_similarity(info, points):
+    """Map points of the source mesh's frame into the scan's frame: (..., 3) -> (..., 3) float64.
+
+    x_scan = scale * R x + t, the :func:`scan_similarity` of ``info``.
     """
-    r, t, s = np.asarray(info["rotation"]), np.asarray(info["translation"]), float(info["scale"])
-    return s * np.asarray(points, dtype=np.float64) @ r.T + t
+    return scan_similarity(info).apply(np.asarray(points, dtype=np.float64))
 
 
 def undo_similarity(info, points):
-    """Inverse of :func:`apply_similarity`: scan frame -> source frame, (..., 3) -> (..., 3)."""
-    r, t, s = np.asarray(info["rotation"]), np.asarray(info["translation"]), float(info["scale"])
-    return ((np.asarray(points, dtype=np.float64) - t) / s) @ r
+    """Inverse of :func:`apply_similarity`: scan frame -> source frame, (..., 3) -> (..., 3) float64."""
+    return scan_similarity(info).invert(np.asarray(points, dtype=np.float64))
 
 
 def simulate_scan(verts, faces, seed=0, remesh=DEFAULTS["remesh"], resolution=DEFAULTS["resolution"],
@@ -276,9 +274,9 @@ def simulate_scan(verts, faces, seed=0, remesh=DEFAULTS["remesh"], resolution=DE
     [1 / (1 + scale), 1 + scale]; clutter: add a floor patch under the lowest
     point along axis ``up`` ("x", "y" or "z"); min_component: pieces with fewer
     faces than this fraction are dropped. Lengths are fractions of the mesh size
-    (2 x RMS radius). ``info`` holds rotation (3, 3), translation (3,), scale,
-    matrix (4, 4) (x_scan = scale R x + t, applied last), size, pitch, the
-    options and counts; JSON-able through :func:`info_to_json`.
+    (2 x RMS radius). ``info`` holds similarity (the Similarity x_scan = scale R x + t,
+    applied last) and its rotation (3, 3), translation (3,), scale and matrix (4, 4),
+    size, pitch, the options and counts; JSON-able through :func:`info_to_json`.
     """
     verts, faces = check_mesh(verts, faces, "input mesh")
     remesh = None if remesh in (None, "none") else remesh
@@ -322,9 +320,9 @@ def simulate_scan(verts, faces, seed=0, remesh=DEFAULTS["remesh"], resolution=DE
     trans = streams[5].uniform(-1.0, 1.0, size=3) * size if rigid else np.zeros(3)
     factor = float(np.exp(streams[6].uniform(-1.0, 1.0) * np.log1p(scale))) if scale > 0 else 1.0
     v, f = _shuffle(v, f, streams[7])
-    matrix = np.eye(4)
-    matrix[:3, :3], matrix[:3, 3] = factor * rot, trans
-    info = {"seed": int(seed), "rotation": rot, "translation": trans, "scale": factor, "matrix": matrix,
+    similarity = Similarity(rot, factor, trans)
+    info = {"seed": int(seed), "similarity": similarity, "rotation": similarity.rotation,
+            "translation": similarity.translation, "scale": similarity.scale, "matrix": similarity.matrix(),
             "size": float(size), "pitch": float(pitch) if remesh else None,
             "options": {"remesh": remesh or "none", "resolution": float(resolution), "noise": float(noise),
                         "holes": int(holes), "hole_radius": float(hole_radius), "crop": float(crop),
@@ -333,13 +331,13 @@ def simulate_scan(verts, faces, seed=0, remesh=DEFAULTS["remesh"], resolution=DE
             "n_vertices": int(len(v)), "n_faces": int(len(f)), "n_object_vertices": int(n_object),
             "n_clutter_vertices": int(len(v) - n_object)}
     info["similarity_note"] = "x_scan = scale * rotation @ x + translation (applied to the noisy, cut surface)"
-    v = factor * v @ rot.T + trans
-    return v, f, info
+    return similarity.apply(v), f, info
 
 
 def info_to_json(info):
-    """JSON-able copy of a simulate_scan ``info`` dict (arrays to lists)."""
-    return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in info.items()}
+    """JSON-able copy of a simulate_scan ``info`` dict (arrays to lists, the Similarity to its dict)."""
+    return {k: (v.tolist() if isinstance(v, np.ndarray) else v.to_dict() if isinstance(v, Similarity) else v)
+            for k, v in info.items()}
 
 
 # ------------------------------------------------------------------------ command line

@@ -76,6 +76,12 @@ class Similarity:
         """The inverse similarity."""
         return Similarity(self.rotation.T, 1.0 / self.scale, -(self.rotation.T @ self.translation) / self.scale)
 
+    def matrix(self):
+        """The (4, 4) float64 homogeneous matrix [[scale R, t], [0, 1]]."""
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = self.scale * self.rotation, self.translation
+        return m
+
     def to_dict(self):
         """JSON-ready {"rotation": 3x3 list, "scale": s, "translation": [x, y, z]}."""
         return {"rotation": self.rotation.tolist(), "scale": self.scale,
