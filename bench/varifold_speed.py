@@ -120,7 +120,7 @@ def run_case(name, vs, fs, vt, ft, dev, backends, rows):
     ref = None
     S, T = tt(vs, dev), tt(fs, dev)
     for label, backend, use_keops in backends:
-        V._KEOPS = None if use_keops else False
+        V.kernels._KEOPS = None if use_keops else False
         tv, tf = tt(vt, dev), tt(ft, dev)
 
         def one_shot():
@@ -143,14 +143,14 @@ def run_case(name, vs, fs, vt, ft, dev, backends, rows):
             "rel_err_grad": float((grad - ref[1]).norm() / ref[1].norm()),
             "pairs_per_call": stats["pairs"], "all_pairs": stats["all_pairs"]})
         print(json.dumps(rows[-1]), flush=True)
-    V._KEOPS = None
+    V.kernels._KEOPS = None
 
 
 def memory_child(which, data_dir):
     """Run in a subprocess: one truncated VarifoldLoss build + value/grad call on a 220k-face scan."""
     vs, fs = body(Path(data_dir))
     vt, ft = scan(vs, fs, 2, seed=1)
-    V._KEOPS = None if which == "keops" else False
+    V.kernels._KEOPS = None if which == "keops" else False
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     t = time.perf_counter()
     loss = V.VarifoldLoss(tt(vt), tt(ft), SIGMA, backend="truncated")

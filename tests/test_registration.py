@@ -205,14 +205,14 @@ def test_float32_objective_matches_float64(space, aligned):
 
 
 def test_binned_varifold_matches_exact_varifold_at_coarse_sigma(space):
-    from bareesa.varifold import VarifoldLoss
+    from bareesa.varifold import BinnedVarifoldLoss, VarifoldLoss
 
     basis = space["basis"]
     src, src_faces = (torch.as_tensor(x) for x in synthetic.remesh_same_surface(basis.template, basis.faces, seed=1))
     tgt, tgt_faces = (torch.as_tensor(x) for x in synthetic.remesh_same_surface(space["truth"], basis.faces, seed=2))
     for kernel in ("binet", "linear"):
         exact = VarifoldLoss(tgt, tgt_faces, 1.0, kernel=kernel, backend="dense")(src, src_faces)
-        binned = level_problem.BinnedVarifoldLoss(src, src_faces, tgt, tgt_faces, 1.0, kernel=kernel)
+        binned = BinnedVarifoldLoss(src, src_faces, tgt, tgt_faces, 1.0, kernel=kernel)
         assert binned.n_groups < src_faces.shape[0] / 4
         assert float(binned(src, src_faces)) == pytest.approx(float(exact), rel=0.05)
 

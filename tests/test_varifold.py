@@ -41,7 +41,7 @@ def use_backend(request, monkeypatch):
         if name in ("keops", "truncated"):
             request.getfixturevalue("keops_ok")
         if name == "truncated-torch":
-            monkeypatch.setattr(V, "_KEOPS", False)
+            monkeypatch.setattr(V.kernels, "_KEOPS", False)
             return "truncated"
         return name
     return setup
@@ -199,7 +199,7 @@ def test_bad_meshes_raise_input_error(monkeypatch):
         varifold_distance(v, f + 1000, v, f, SIGMA)
     with pytest.raises(InputError, match="target_weights"):
         varifold_distance(v, f, v, f, SIGMA, target_weights=torch.ones(3, dtype=DT))
-    monkeypatch.setattr(V, "_KEOPS", False)
+    monkeypatch.setattr(V.kernels, "_KEOPS", False)
     with pytest.raises(InputError, match="pykeops"):
         varifold_distance(v, f, v, f, SIGMA, backend="keops")
     assert choose_backend(14000, 55000, 1.0, 2.0, "cpu") == "dense"
@@ -275,3 +275,58 @@ def test_binned_target_options():
         VarifoldLoss(w, g, SIGMA, target_cell=0.0)
     with pytest.raises(InputError, match="require grad"):
         VarifoldLoss(w.clone().requires_grad_(True), g, SIGMA, target_cell=SIGMA)
+
+
+# ------------------------------------------------------------------ binned measures (centroids, features)
+
+def binned_value_and_grads(backend, kernel):
+    v, f = mesh(3, 0, True)
+    w, g = mesh(3, 1)
+    loss = V.BinnedVarifoldLoss(v, f, w, g, SIGMA, kernel=kernel, cell=SIGMA / 2, backend=backend)
+    d = loss(v, f)
+    (gv,) = torch.autograd.grad(d, v)
+    return d.detach(), gv, loss.stats
+
+
+@pytest.mark.parametrize("kernel", ["binet", "linear", "constant"])
+@pytest.mark.parametrize("backend", BACKENDS[1:])
+def test_binned_loss_backends_agree_with_dense_values_and_gradients(backend, kernel, use_backend):
+    # the cell pairs of binned measures go through the same backends as faces
+    ref = binned_value_and_grads("dense", kernel)
+    out = binned_value_and_grads(use_backend(backend), kernel)
+    assert out[2]["backend"] == backend.split("-")[0] and ref[2]["backend"] == "dense"
+    assert torch.isclose(out[0], ref[0], rtol=1e-5, atol=0)
+    assert float((out[1] - ref[1]).norm() / ref[1].norm()) < 1e-5
+    if backend.startswith("truncated"):
+        assert out[2]["pairs"] < 0.5 * out[2]["all_pairs"], "truncation removed no pairs"
+
+
+def test_binned_measure_loss_gradient_matches_finite_differences():
+    rng = np.random.default_rng(0)
+    x, f = (torch.tensor(rng.normal(size=s), dtype=DT, requires_grad=True) for s in ((7, 3), (7, 9)))
+    loss = V.BinnedMeasureLoss(torch.tensor(rng.normal(size=(5, 3)), dtype=DT),
+                               torch.tensor(rng.normal(size=(5, 9)), dtype=DT), 0.8, backend="dense")
+    assert torch.autograd.gradcheck(loss, (x, f), eps=1e-6, atol=1e-7, rtol=1e-5)
+
+
+@pytest.mark.parametrize("kernel", ["binet", "linear", "constant"])
+def test_moved_binned_measure_is_the_binned_measure_of_the_moved_mesh(kernel):
+    v, f = mesh(3, 0)
+    groups, n = V.measure.cell_groups(V.varifold_measure(v, f)[0], 0.3)
+    R, s, t = torch.tensor(random_rotation(2), dtype=DT), torch.tensor(1.7, dtype=DT), torch.tensor([0.3, -1.0, 2.0], dtype=DT)
+    x, feat, _ = V.group_features(*V.varifold_measure(v, f), groups, n, kernel)
+    xm, fm, _ = V.group_features(*V.varifold_measure(s * v @ R.T + t, f), groups, n, kernel)
+    x2, f2 = V.moved_measure(x, feat, R, s, t, kernel)
+    assert torch.allclose(x2, xm, rtol=0, atol=1e-12) and torch.allclose(f2, fm, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("kernel", ["binet", "linear", "constant"])
+def test_binned_loss_with_one_face_per_cell_is_the_face_loss(kernel):
+    # features <f, f'> reproduce kappa(n.n') a a' exactly: cells too small to hold two faces give d^2
+    v, f = mesh(2, 0, True)
+    w, g = mesh(2, 1)
+    binned = V.BinnedVarifoldLoss(v, f, w, g, SIGMA, kernel=kernel, cell=1e-6, backend="dense")
+    assert binned.n_groups == f.shape[0] and binned.n_target == g.shape[0]
+    d0, d1 = VarifoldLoss(w, g, SIGMA, kernel=kernel, backend="dense")(v, f), binned(v, f)
+    (g0,), (g1,) = torch.autograd.grad(d0, v), torch.autograd.grad(d1, v)
+    assert torch.isclose(d1, d0, rtol=1e-10, atol=0) and float((g1 - g0).norm() / g0.norm()) < 1e-10

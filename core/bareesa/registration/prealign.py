@@ -5,9 +5,10 @@ principal axes of the scan's area-weighted second moments onto the template's (t
 signed permutations, so near-equal moments and any axis order are covered) plus the identity;
 each is scored by a coarse binet varifold (faces binned into cubic cells, each cell keeping its
 area-weighted centroid and orientation tensor sum a n n^T, which is exact for the binet kernel up
-to the binning of positions); the best few are refined by L-BFGS over (axis-angle, translation,
-log-scale) at a coarse then a finer sigma. The binet kernel ignores normal orientation, so
-inconsistently oriented scans align as well.
+to the binning of positions; ``bareesa.varifold``'s binned measures, summed by its backends);
+the best few are refined by L-BFGS over (axis-angle, translation, log-scale) at a coarse then a
+finer sigma. The binet kernel ignores normal orientation, so inconsistently oriented scans align
+as well.
 """
 
 import math
@@ -17,9 +18,11 @@ import numpy as np
 import torch
 
 from ..errors import MeshError
+from ..mesh import face_geometry
 from ..optimize import minimize_lbfgs
 from ..progress import Monitor
 from ..transforms import Similarity, axis_angle_rotation, rotation_angle
+from ..varifold import BinnedMeasureLoss, cell_features, moved_measure, varifold_measure
 
 #: Pre-alignment sigmas (scoring/refinement, final refinement), in units of the RMS radius.
 PREALIGN_SIGMAS = (0.5, 0.25)
@@ -38,13 +41,13 @@ def surface_moments(verts, faces, face_weights=None):
     int (x - c)(x - c)^T dA / A, so sqrt of its trace is the RMS radius.
     """
     p = np.asarray(verts, dtype=np.float64)[np.asarray(faces)]
-    a = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    _, a, barycentres = face_geometry(verts, faces)
     if face_weights is not None:
         a = a * face_weights
     total = a.sum()
     if not total > 0:
         raise MeshError("the scan has zero (weighted) surface area; nothing to register")
-    center = (a[:, None] * p.mean(1)).sum(0) / total
+    center = (a[:, None] * barycentres).sum(0) / total
     q = p - center
     s = q.sum(1)
     # int over a triangle of x x^T = A/12 (sum_i q_i q_i^T + s s^T), s = sum_i q_i
@@ -52,44 +55,27 @@ def surface_moments(verts, faces, face_weights=None):
     return float(total), center, second / (12.0 * total)
 
 
-def coarse_measure(points, faces, face_weights, cell):
-    """Faces binned into cubic cells -> centroids (C, 3), orientation tensors sum a n n^T (C, 9)."""
-    p = points[faces]
-    cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    norm = np.linalg.norm(cross, axis=1)
-    a = 0.5 * norm * (1.0 if face_weights is None else face_weights)
-    keep = a > 0
-    a, n, c = a[keep], cross[keep] / norm[keep, None], p[keep].mean(1)
-    _, inv = np.unique(np.floor(c / cell).astype(np.int64), axis=0, return_inverse=True)
-    inv = inv.reshape(-1)
-    area = np.bincount(inv, a)
-    x = np.stack([np.bincount(inv, a * c[:, k]) for k in range(3)], 1) / area[:, None]
-    nn = a[:, None] * (n[:, :, None] * n[:, None, :]).reshape(-1, 9)
-    tensors = np.stack([np.bincount(inv, nn[:, k]) for k in range(9)], 1)
-    return torch.from_numpy(x), torch.from_numpy(tensors)
+def coarse_measure(verts, faces, face_weights, cell):
+    """A surface binned into cubic cells (``varifold.cell_features``, binet), float64 on the CPU:
+    verts (N, 3), faces (F, 3), face_weights (F,) or None -> centroids (C, 3), tensors sum a n n^T (C, 9)."""
+    as64 = lambda a: torch.as_tensor(a, dtype=torch.float64, device="cpu")  # noqa: E731
+    weights = None if face_weights is None else as64(face_weights)
+    measure = varifold_measure(as64(verts), torch.as_tensor(faces, dtype=torch.long, device="cpu"), weights)
+    return cell_features(*measure, cell, "binet")[:2]
 
 
 class CoarseVarifold:
     """Binet varifold of binned measures against a fixed target; the source moves by a similarity."""
 
     def __init__(self, target, source, sigma):
-        self.g = 1.0 / sigma**2
-        self.xt, self.st = target
-        self.xs, self.ss = source
-        self.self_t = float(self._inner(self.xt, self.st, self.xt, self.st))
-
-    def _inner(self, x, s, y, t):
-        d2 = ((x * x).sum(1)[:, None] + (y * y).sum(1)[None, :] - 2 * x @ y.T).clamp_min(0)
-        return (torch.exp(-self.g * d2) * (s @ t.T)).sum()
+        self.loss = BinnedMeasureLoss(*target, sigma)
+        self.source = source
+        self.self_t = float(self.loss.self_t)
 
     def __call__(self, params, base):
         """Squared distance after x -> e^l R(w) base x + tau; params (w, tau, l) (7,) tensor."""
         r = axis_angle_rotation(params[:3]) @ base
-        scale = torch.exp(params[6])
-        x = scale * self.xs @ r.T + params[3:6]
-        s = (scale**2 * (r @ self.ss.reshape(-1, 3, 3) @ r.T)).reshape(-1, 9)
-        return self.self_t - 2 * self._inner(x, s, self.xt, self.st) + self._inner(x, s, x, s)
-
+        return self.loss(*moved_measure(*self.source, r, torch.exp(params[6]), params[3:6], "binet"))
 
 
 def _candidate_rotations(axes_t, axes_s):

@@ -13,11 +13,11 @@ import numpy as np
 import torch
 
 from .. import h2_metric
-from ..errors import InputError
 from ..latent import decode, time_whitening, whitening
+from ..mesh import face_geometry
 from ..optimize import minimize_lbfgs
 from ..transforms import Similarity, axis_angle_rotation
-from ..varifold import KERNELS, VarifoldLoss, default_cutoff, varifold_measure
+from ..varifold import BIN_CELL, BinnedVarifoldLoss, VarifoldLoss, default_cutoff
 from .prealign import PREALIGN_CELL, CoarseVarifold, coarse_measure, surface_moments
 
 #: L-BFGS stops a level when an iteration lowers the objective by less than this relative amount
@@ -26,7 +26,6 @@ LEVEL_FTOL = 1e-9
 #: ... and when it fell by less than LEVEL_PLATEAU[1] (relative) over the last LEVEL_PLATEAU[0]
 #: iterations: easy problems plateau within ~15 iterations, a body in a new pose needs ~100
 LEVEL_PLATEAU = (5, 1e-3)
-BIN_CELL = 0.4              # cell size of the binned varifold, in units of sigma
 BIN_GAIN = 0.05             # "auto" bins a level when that leaves at most this share of face pairs
 #: Unbinned levels: truncation tolerance of the varifold kernel (cutoff sigma sqrt(log(1/tol)),
 #: relative error of d^2 ~1e-6 at paper scale) and cell size, in units of sigma, of the scan's
@@ -55,86 +54,6 @@ def delta_similarity(params, center, units):
     r = axis_angle_rotation(p[:3])
     s = float(torch.exp(log_scale(torch.tensor(float(p[6]), dtype=torch.float64))))
     return Similarity(r, s, center - s * r @ center + p[3:6])
-
-
-# --------------------------------------------------------------------------- binned varifold
-
-
-def _cell_groups(points, cell):
-    """Index of the cubic cell of each point: (F, 3) numpy -> groups (F,) int64, number of cells."""
-    _, inv = np.unique(np.floor(points / cell).astype(np.int64), axis=0, return_inverse=True)
-    inv = inv.reshape(-1)
-    return inv, int(inv.max()) + 1
-
-
-def _binned_measure(centers, normals, areas, groups, n_groups, kernel):
-    """Sums of a face measure over groups -> centroids (C, 3), kernel features (C, K).
-
-    The features make the orientation kernel a dot product, so a group of faces is exact for it:
-    binet (n.n')^2 = <n n^T, n' n'^T>: sum a n n^T (9); linear: sum a n (3); constant: sum a (1).
-    """
-    total = areas.new_zeros(n_groups).index_add(0, groups, areas)
-    moment = centers.new_zeros(n_groups, 3).index_add(0, groups, areas[:, None] * centers)
-    x = moment / total.clamp_min(torch.finfo(total.dtype).tiny)[:, None]
-    if kernel == "binet":
-        per_face = (normals[:, :, None] * normals[:, None, :]).reshape(-1, 9)
-    elif kernel == "linear":
-        per_face = normals
-    else:
-        per_face = torch.ones_like(areas)[:, None]
-    feat = areas.new_zeros(n_groups, per_face.shape[1]).index_add(0, groups, areas[:, None] * per_face)
-    return x, feat
-
-
-class BinnedVarifoldLoss:
-    """Squared varifold distance with both measures summed over cubic cells of size BIN_CELL x sigma.
-
-    For sigma much larger than the faces (the coarse levels of a schedule) this replaces
-    F x (F + G) face pairs by C x (C + D) cell pairs. The target (scan) is binned once; the
-    source's faces are grouped once (by their cells at construction) and each call sums the
-    moving faces over these fixed groups (differentiable). Orientation is exact; positions are
-    approximated by each group's centroid (relative kernel error ~ (cell / sigma)^2 / 4).
-    """
-
-    def __init__(self, source_verts, faces, target_verts, target_faces, sigma, kernel="binet",
-                 target_weights=None, cell=None):
-        if kernel not in KERNELS:
-            raise InputError(f"unknown varifold kernel {kernel!r}; choose one of {sorted(KERNELS)}")
-        self.g, self.kernel = 1.0 / sigma**2, kernel
-        cell = BIN_CELL * sigma if cell is None else cell
-        centers = varifold_measure(source_verts.detach(), faces)[0]
-        groups, self.n_groups = _cell_groups(centers.cpu().numpy(), cell)
-        self.groups = torch.as_tensor(groups, device=source_verts.device)
-        c, n, a = varifold_measure(target_verts, target_faces, target_weights)
-        t_groups, n_t = _cell_groups(c.cpu().numpy(), cell)
-        x, feat = _binned_measure(c, n, a, torch.as_tensor(t_groups, device=c.device), n_t, kernel)
-        keep = feat.abs().sum(1) > 0
-        self.target = (x[keep], feat[keep])
-        self.n_target = int(keep.sum())
-        self._self_t = None
-
-    @property
-    def self_t(self):
-        """|target|^2 (computed on first use: callers may first only look at the sizes)."""
-        if self._self_t is None:
-            with torch.no_grad():
-                self._self_t = self._inner(*self.target, *self.target)
-        return self._self_t
-
-    def _inner(self, x, f, y, h, chunk=2**22):
-        out = x.new_zeros(())
-        rows = max(1, chunk // max(1, y.shape[0]))
-        y2 = (y * y).sum(1)[None, :]
-        for s in range(0, x.shape[0], rows):
-            xs = x[s:s + rows]
-            d2 = ((xs * xs).sum(1)[:, None] + y2 - 2 * xs @ y.T).clamp_min(0)
-            out = out + (torch.exp(-self.g * d2) * (f[s:s + rows] @ h.T)).sum()
-        return out
-
-    def __call__(self, verts, faces):
-        """Squared binned distance of the mesh (verts (N, 3), faces (F, 3)) to the target -> scalar."""
-        x, f = _binned_measure(*varifold_measure(verts, faces), self.groups, self.n_groups, self.kernel)
-        return self._inner(x, f, x, f) - 2 * self._inner(x, f, *self.target) + self.self_t
 
 
 def resample_in_time(path, steps):
@@ -186,12 +105,11 @@ class PathVariables:
 def _normal_gram(verts, faces, fields):
     """N_ij = sum_v A_v (h_i . n_v)(h_j . n_v): the L2 metric of the fields' normal components at the
     template: (N, 3), (F, 3), (P, N, 3) -> (P, P) numpy."""
-    p = verts[faces]
-    cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    vectors = face_geometry(verts, faces)[0]  # a_f n_f
     normals = np.zeros_like(verts)
     for k in range(3):
-        np.add.at(normals, faces[:, k], cross)
-    area = np.linalg.norm(normals, axis=1) / 6  # |sum of adjacent a_f n_f| / 3, a_f = |cross| / 2
+        np.add.at(normals, faces[:, k], vectors)
+    area = np.linalg.norm(normals, axis=1) / 3  # |sum of adjacent a_f n_f| / 3
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
     hn = np.einsum("pvk,vk->pv", fields, normals)
     return (hn * area) @ hn.T
@@ -231,16 +149,16 @@ class RegistrationProblem:
         [(Similarity, weight * Gamma + energy of the straight path 0 -> code)], Gamma on the coarse cells."""
         sigma = level.sigma * self.scale
         cell = PREALIGN_CELL * sigma
-        weights = None if self.scan_weights is None else self.scan_weights.detach().cpu().numpy()
-        scan = coarse_measure(transform.apply(self.scan) - self.center, self.scan_faces.cpu().numpy(), weights, cell)
-        faces, eye = self.faces.cpu().numpy(), torch.eye(3, dtype=torch.float64)
+        weights = None if self.scan_weights is None else self.scan_weights.detach()
+        scan = coarse_measure(transform.apply(self.scan) - self.center, self.scan_faces, weights, cell)
+        eye = torch.eye(3, dtype=torch.float64)
         out = []
         for code in codes:
             self.monitor.check()
             with torch.no_grad():
                 verts = decode(self.template, self.fields, torch.as_tensor(code, dtype=self.dtype, device=self.device))
             verts = verts.detach().cpu().numpy().astype(np.float64) - self.center
-            coarse = CoarseVarifold(scan, coarse_measure(verts, faces, None, cell), sigma)
+            coarse = CoarseVarifold(scan, coarse_measure(verts, self.faces, None, cell), sigma)
             x, gamma, _ = minimize_lbfgs(lambda p: coarse(torch.cat([p[:6], log_scale(p[6:])]), eye), np.zeros(7),
                                          max_iter=POSE_ALIGN_ITER, gtol=1e-9, ftol=1e-10)
             # F(code) moved by S: x -> e^l R (x - c) + tau + c; the scan moves by the inverse instead
@@ -273,7 +191,7 @@ class RegistrationProblem:
         with torch.no_grad():
             final = decode(self.template, self.fields, code)
             loss = BinnedVarifoldLoss(final, self.faces, target, self.scan_faces, sigma, self.kernel,
-                                      self.scan_weights, cell=SCREEN_CELL * sigma)
+                                      self.scan_weights, cell=SCREEN_CELL * sigma, backend=self.backend)
             return level.weight * float(loss(final, self.faces)) + energy
 
     def solve_level(self, level, path, transform, progress, message):
@@ -287,7 +205,8 @@ class RegistrationProblem:
         if self.binning:
             code = torch.as_tensor(path[-1], dtype=dtype, device=device)
             loss = BinnedVarifoldLoss(decode(self.template, self.fields, code), self.faces, target,
-                                      self.scan_faces, sigma, self.kernel, self.scan_weights)
+                                      self.scan_faces, sigma, self.kernel, self.scan_weights,
+                                      cell=BIN_CELL * sigma, backend=self.backend)
             n_s, n_t = self.faces.shape[0], self.scan_faces.shape[0]
             pairs = loss.n_groups * (loss.n_groups + loss.n_target)
             if self.binning == "auto" and pairs > BIN_GAIN * n_s * (n_s + n_t):

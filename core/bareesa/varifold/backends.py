@@ -1,0 +1,308 @@
+r"""Pair sums of a measure against a "j" measure: dense torch, KeOps, and truncated (grid + runs).
+
+A measure is (x, u, *rest): centres x (N, 3), the data u the "i" side needs and, on the "j"
+side, v = (u, *rest). Every backend computes, for each "i" point, sums over the "j" points of
+the Gaussian K_ij = exp(-g |x_i - y_j|^2) (g = 1 / sigma^2) times what the kind of measure
+puts on a pair (``FacePairs``, ``FeaturePairs``), with the sums that the gradient needs.
+"""
+
+import torch
+
+from .kernels import KERNELS, default_cutoff, keops_available
+
+DENSE_CHUNK_BYTES = 256 * 2**20
+CELL_FRACTION = 0.25      # grid cell size of the "j" measure, in units of the cutoff
+CLUSTER_FRACTION = 0.5    # cluster size of the "i" measure, in units of the cutoff
+
+
+# --------------------------------------------------------------------------- kinds of measures
+
+class FacePairs:
+    r"""Faces (x, n, a) against faces (y, m, b): k_ij = K_ij kappa(n_i . m_j) b_j (times a_i).
+
+    Sums (N, 1 or 7): F0_i = sum_j k_ij, Fx_i = sum_j k_ij (x_i - y_j), Fn_i = sum_j b_j K_ij
+    kappa'_ij m_j. Then <q, q'> = sum_i a_i F0_i and d/dx_i = -2 g a_i Fx_i, d/dn_i = a_i Fn_i,
+    d/da_i = F0_i. kappa(t) = c0 + c1 t + c2 t^2 (``KERNELS``).
+    """
+
+    exact_differences = True   # the dense backend forms x_i - y_j (accurate in float32)
+
+    def __init__(self, kernel):
+        self.params = KERNELS[kernel]
+
+    def width(self, grad):
+        """Number of sums per "i" point."""
+        return 7 if grad else 1
+
+    def masked(self, v, mask):
+        """The "j" data (m, b) of padded tiles with the padding (mask 0) weightless."""
+        m, b = v
+        return m, b * mask
+
+    def sums(self, K, fx, n, v, grad):
+        """Sums from the Gaussian K (..., I, J) (overwritten), n (..., I, 3), v = (m (..., J, 3),
+        b (..., J)); fx(W, sum_j W) -> sum_j W_ij (x_i - y_j) (..., I, 3)."""
+        c0, c1, c2 = self.params
+        m, b = v
+        K = K.mul_(b.unsqueeze(-2))
+        t = n @ m.transpose(-1, -2)
+        W = K * (c0 + t * (c1 + c2 * t))
+        F0 = W.sum(-1, keepdim=True)
+        if not grad:
+            return F0
+        return torch.cat([F0, fx(W, F0), (K * (c1 + 2 * c2 * t)) @ m], -1)
+
+    def keops(self, K, d, n, v, C, grad):
+        """The same sums as a KeOps formula of LazyTensors (C: the kernel's coefficients)."""
+        m, b = v
+        K = K * b
+        t = n | m
+        kap = C.elem(0) + t * (C.elem(1) + C.elem(2) * t)
+        if grad:
+            return K * kap.concat(kap * d).concat((C.elem(1) + 2 * C.elem(2) * t) * m)
+        return K * kap
+
+    def value(self, data, F):
+        """<q, q'> from the sums (data = (n, a) of the "i" measure) -> scalar."""
+        return (data[1].detach() * F[:, 0]).sum()
+
+    def grads(self, data, F, g, f):
+        """f x the gradients of <q, q'> in (x, n, a) of the "i" measure."""
+        a = data[1].detach()[:, None]
+        return [(-2 * f * g) * a * F[:, 1:4], f * a * F[:, 4:7], f * F[:, 0]]
+
+
+class FeaturePairs:
+    r"""Binned measures (x, f) against (y, h): k_ij = K_ij <f_i, h_j> on K-dim features (``measure``).
+
+    Sums (N, K or K+3): Fh_i = sum_j K_ij h_j, Fx_i = sum_j k_ij (x_i - y_j). Then
+    <q, q'> = sum_i <f_i, Fh_i> and d/dx_i = -2 g Fx_i, d/df_i = Fh_i.
+    """
+
+    params = ()
+    exact_differences = False  # coarse sigma: the dense backend expands |x - y|^2 (matrix products)
+
+    def __init__(self, dim):
+        self.dim = dim
+
+    def width(self, grad):
+        """Number of sums per "i" point."""
+        return self.dim + 3 if grad else self.dim
+
+    def masked(self, v, mask):
+        """The "j" features of padded tiles with the padding (mask 0) zero."""
+        return (v[0] * mask.unsqueeze(-1),)
+
+    def sums(self, K, fx, f, v, grad):
+        """Sums from the Gaussian K (..., I, J), f (..., I, K), v = (h (..., J, K),); fx as for faces."""
+        h = v[0]
+        Fh = K @ h
+        if not grad:
+            return Fh
+        return torch.cat([Fh, fx(K * (f @ h.transpose(-1, -2)), None)], -1)
+
+    def keops(self, K, d, f, v, C, grad):
+        """The same sums as a KeOps formula of LazyTensors."""
+        h = v[0]
+        if grad:
+            return (K * h).concat(K * (f | h) * d)
+        return K * h
+
+    def value(self, data, F):
+        """<q, q'> from the sums (data = (f,) of the "i" measure) -> scalar."""
+        return (data[0].detach() * F[:, :self.dim]).sum()
+
+    def grads(self, data, F, g, f):
+        """f x the gradients of <q, q'> in (x, f) of the "i" measure."""
+        return [(-2 * f * g) * F[:, self.dim:], f * F[:, :self.dim]]
+
+
+# --------------------------------------------------------------------------- pair sums
+
+def _dense_sums(x, u, y, v, g, kind, grad, max_bytes=DENSE_CHUNK_BYTES):
+    """All-pairs sums in torch, chunked over rows: faces with exact differences x - y (accurate in
+    float32), binned measures (coarse sigma) as one tile per chunk (a few matrix products)."""
+    rows = max(1, int(max_bytes // (12 * y.shape[0] * y.element_size())))
+    out = []
+    for s in range(0, x.shape[0], rows):
+        if not kind.exact_differences:
+            out.append(_tile_sums(x[None, s:s + rows], u[None, s:s + rows], y[None], tuple(t[None] for t in v),
+                                  g, kind, grad)[0])
+            continue
+        d = x[s:s + rows, None, :] - y[None, :, :]               # (B, M, 3)
+        K = torch.exp(-g * (d * d).sum(-1))                      # (B, M)
+        out.append(kind.sums(K, lambda W, _, d=d: torch.einsum("bm,bmk->bk", W, d), u[s:s + rows], v, grad))
+    return torch.cat(out, 0)
+
+
+def _lazy(t, side):
+    """A tensor (P, D) or (P,) as a KeOps LazyTensor of the "i" or "j" side."""
+    from pykeops.torch import LazyTensor
+    t = t if t.ndim == 2 else t[:, None]
+    return LazyTensor((t[:, None, :] if side == "i" else t[None, :, :]).contiguous())
+
+
+def _keops_sums(x, u, y, v, g, kind, grad, ranges=None):
+    """All-pairs (or block-sparse with ``ranges``) sums with one KeOps reduction."""
+    from pykeops.torch import LazyTensor
+    xi, ui = _lazy(x, "i"), _lazy(u, "i")
+    yj, vj = _lazy(y, "j"), [_lazy(t, "j") for t in v]
+    G = LazyTensor(torch.tensor([g], dtype=x.dtype, device=x.device))
+    C = LazyTensor(torch.tensor(kind.params, dtype=x.dtype, device=x.device)) if kind.params else None
+    d = xi - yj
+    K = (-G * d.sqnorm2()).exp()
+    return kind.keops(K, d, ui, vj, C, grad).sum(dim=1, ranges=ranges)
+
+
+def _tile_sums(x, u, y, v, g, kind, grad):
+    """Batched tile sums: x (T, I, 3), u (T, I, D), y (T, J, 3), v (T, J, ...) -> (T, I, width);
+    centred expansion of |x - y|^2."""
+    o = x[:, :1, :]
+    x, y = x - o, y - o
+    d2 = (x * x).sum(-1)[:, :, None] + (y * y).sum(-1)[:, None, :] - 2 * x @ y.transpose(1, 2)
+    K = torch.exp(d2.clamp_min(0) * -g)
+
+    def fx(W, row_sums):
+        return x * (W.sum(-1, keepdim=True) if row_sums is None else row_sums) - W @ y
+
+    return kind.sums(K, fx, u, v, grad)
+
+
+class Grid:
+    """Uniform grid of cells (size h) of the "j" points: sort permutation and sorted cell keys."""
+
+    def __init__(self, y, cutoff):
+        y = y.detach()
+        self.h = CELL_FRACTION * cutoff
+        self.origin = y.min(0).values
+        ijk = torch.floor((y - self.origin) / self.h).long()
+        self.dims = (ijk.max(0).values + 1).tolist()
+        nx, ny, _ = self.dims
+        keys = ijk[:, 0] + nx * (ijk[:, 1] + ny * ijk[:, 2])
+        self.keys, self.perm = torch.sort(keys)
+        self.size = y.shape[0]
+
+    def ranges(self, x, cutoff, cluster_size):
+        """Clusters of x (sort perm, (C,2) ranges) and, per cluster, the runs of sorted j points
+        within ``cutoff`` of its bounding box: slices (C,), runs (R,2); and the pair count."""
+        x = x.detach()
+        dev = x.device
+        cidx = torch.floor((x - x.min(0).values) / cluster_size).long()
+        cd = (cidx.max(0).values + 1).tolist()
+        ckeys = cidx[:, 0] + cd[0] * (cidx[:, 1] + cd[1] * cidx[:, 2])
+        ckeys, perm_i = torch.sort(ckeys)
+        _, counts = torch.unique_consecutive(ckeys, return_counts=True)
+        C = counts.shape[0]
+        ends = torch.cumsum(counts, 0)
+        ranges_i = torch.stack([ends - counts, ends], 1)
+        cid = torch.repeat_interleave(torch.arange(C, device=dev), counts)
+        xs = x[perm_i]
+        lo = torch.full((C, 3), float("inf"), dtype=x.dtype, device=dev)
+        lo = lo.scatter_reduce(0, cid[:, None].expand(-1, 3), xs, "amin", include_self=True)
+        hi = torch.full((C, 3), -float("inf"), dtype=x.dtype, device=dev)
+        hi = hi.scatter_reduce(0, cid[:, None].expand(-1, 3), xs, "amax", include_self=True)
+
+        h, o, (nx, ny, nz) = self.h, self.origin, self.dims
+        a0 = torch.floor((lo - cutoff - o) / h).long().clamp_min(0)                 # (C, 3)
+        a1 = torch.minimum(torch.floor((hi + cutoff - o) / h).long(),
+                           torch.tensor([nx - 1, ny - 1, nz - 1], device=dev))
+        ky = max(int((a1[:, 1] - a0[:, 1]).max()) + 1, 1)
+        kz = max(int((a1[:, 2] - a0[:, 2]).max()) + 1, 1)
+        iy = a0[:, 1, None, None] + torch.arange(ky, device=dev)[None, :, None]     # (C, ky, 1)
+        iz = a0[:, 2, None, None] + torch.arange(kz, device=dev)[None, None, :]     # (C, 1, kz)
+
+        def gap(i, k):  # distance from the cluster box to the cell slab i along axis k
+            cl = o[k] + i.to(x.dtype) * h
+            return torch.maximum(cl - hi[:, k, None, None], lo[:, k, None, None] - (cl + h)).clamp_min(0)
+
+        rem = cutoff ** 2 - gap(iy, 1) ** 2 - gap(iz, 2) ** 2                       # (C, ky, kz)
+        valid = (rem > 0) & (iy <= a1[:, 1, None, None]) & (iz <= a1[:, 2, None, None])
+        rx = rem.clamp_min(0).sqrt()
+        ix0 = torch.floor((lo[:, 0, None, None] - rx - o[0]) / h).long().clamp_min(0)
+        ix1 = torch.floor((hi[:, 0, None, None] + rx - o[0]) / h).long().clamp_max(nx - 1)
+        valid &= ix0 <= ix1
+        row = nx * (iy + ny * iz)
+        start = torch.searchsorted(self.keys, (ix0 + row).reshape(-1))
+        end = torch.searchsorted(self.keys, (ix1 + row).reshape(-1), right=True)
+        valid = valid.reshape(-1) & (end > start)
+        runs = torch.stack([start[valid], end[valid]], 1)
+        owner = torch.arange(C, device=dev)[:, None].expand(C, ky * kz).reshape(-1)[valid]
+        slices = torch.cumsum(torch.bincount(owner, minlength=C), 0)
+        pairs = int(((runs[:, 1] - runs[:, 0]) * counts[owner]).sum())
+        return perm_i, ranges_i, slices, runs, owner, pairs
+
+
+def _truncated_tiles(xs, us, ys, vs, g, kind, grad, ranges_i, runs, owner, ti=16, tj=512):
+    """Torch fallback of the block-sparse sums: per cluster, its runs are concatenated into one
+    list of j indices, and (cluster rows x list) is cut into padded (ti x tj) tiles."""
+    dev = xs.device
+    C = ranges_i.shape[0]
+    rl = runs[:, 1] - runs[:, 0]
+    total = int(rl.sum())
+    first = torch.repeat_interleave(torch.cumsum(rl, 0) - rl, rl)
+    jlist = torch.repeat_interleave(runs[:, 0], rl) + torch.arange(total, device=dev) - first
+    L = torch.zeros(C, dtype=torch.long, device=dev).index_add_(0, owner, rl)   # list length per cluster
+    off = torch.cumsum(L, 0) - L
+    nI = (ranges_i[:, 1] - ranges_i[:, 0] + ti - 1) // ti
+    nJ = (L + tj - 1) // tj
+    nt = nI * nJ
+    c = torch.repeat_interleave(torch.arange(C, device=dev), nt)
+    k = torch.arange(c.shape[0], device=dev) - torch.repeat_interleave(torch.cumsum(nt, 0) - nt, nt)
+    it, jt = k // nJ[c], k % nJ[c]
+    i0 = ranges_i[c, 0] + it * ti
+    i1 = torch.minimum(i0 + ti, ranges_i[c, 1])
+    p0 = off[c] + jt * tj
+    p1 = torch.minimum(p0 + tj, off[c] + L[c])
+    out = xs.new_zeros(xs.shape[0], kind.width(grad))
+    chunk = max(1, DENSE_CHUNK_BYTES // (12 * ti * tj * xs.element_size()))
+    ai, aj = torch.arange(ti, device=dev), torch.arange(tj, device=dev)
+    for s in range(0, c.shape[0], chunk):
+        ii = i0[s:s + chunk, None] + ai
+        mi = ii < i1[s:s + chunk, None]
+        ii = torch.where(mi, ii, i0[s:s + chunk, None])
+        pp = p0[s:s + chunk, None] + aj
+        mj = pp < p1[s:s + chunk, None]
+        jj = jlist[torch.where(mj, pp, p0[s:s + chunk, None])]
+        F = _tile_sums(xs[ii], us[ii], ys[jj], kind.masked(tuple(t[jj] for t in vs), mj), g, kind, grad)
+        out.index_add_(0, ii[mi], F[mi])
+    return out
+
+
+# --------------------------------------------------------------------------- engine
+
+class Engine:
+    """Evaluates the pair sums of a measure against a "j" measure with one backend."""
+
+    def __init__(self, backend, sigma, kind, cutoff, use_keops=None):
+        self.backend, self.g, self.kind = backend, 1.0 / sigma ** 2, kind
+        self.cutoff = default_cutoff(sigma) if cutoff is None else float(cutoff)
+        self.use_keops = keops_available() if use_keops is None else use_keops
+        self.pairs = 0            # pairs evaluated by the last calls (reset by the caller)
+
+    def sums(self, x, u, y, v, grad, grid=None):
+        """Pair sums (N, width) of i = (x (N, 3), u (N, D)) against j = (y (M, 3), v (tuple of
+        (M, ...))); grid: cached Grid of y."""
+        x, u, y = x.detach(), u.detach(), y.detach()
+        v = tuple(t.detach() for t in v)
+        if self.backend == "dense":
+            self.pairs += x.shape[0] * y.shape[0]
+            return _dense_sums(x, u, y, v, self.g, self.kind, grad)
+        if self.backend == "keops":
+            self.pairs += x.shape[0] * y.shape[0]
+            return _keops_sums(x, u, y, v, self.g, self.kind, grad)
+        grid = Grid(y, self.cutoff) if grid is None else grid
+        perm_i, ranges_i, slices, runs, owner, pairs = grid.ranges(
+            x, self.cutoff, CLUSTER_FRACTION * self.cutoff)
+        self.pairs += pairs
+        xs, us = x[perm_i], u[perm_i]
+        ys, vs = y[grid.perm], tuple(t[grid.perm] for t in v)
+        if self.use_keops:
+            i32 = lambda t: t.to(torch.int32).contiguous()  # noqa: E731
+            rng = (i32(ranges_i), i32(slices), i32(runs)) * 2   # axis-0 half unused (no KeOps autograd)
+            F = _keops_sums(xs, us, ys, vs, self.g, self.kind, grad, ranges=rng)
+        else:
+            F = _truncated_tiles(xs, us, ys, vs, self.g, self.kind, grad, ranges_i, runs, owner)
+        out = torch.empty_like(F)
+        out[perm_i] = F
+        return out
+

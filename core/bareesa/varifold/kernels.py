@@ -1,0 +1,84 @@
+"""The varifold kernels, the option checks and the rule of ``backend="auto"``."""
+
+import contextlib
+import io
+import math
+
+import torch
+
+from ..errors import InputError
+
+#: Orientation kernels kappa(t) = c0 + c1 t + c2 t^2 of t = n . n' (unit normals): (c0, c1, c2)
+KERNELS = {"binet": (0.0, 0.0, 1.0), "linear": (0.0, 1.0, 0.0), "constant": (1.0, 0.0, 0.0)}
+#: Dimension K of the features that make each orientation kernel a dot product (binned measures)
+FEATURE_DIMS = {"binet": 9, "linear": 3, "constant": 1}
+BACKENDS = ("auto", "dense", "keops", "truncated")
+DEFAULT_TOL = 1e-6
+DENSE_MAX_PAIRS = 2e7
+
+#: Whether pykeops imports (None: not tried yet); set it to False to force the torch code paths.
+_KEOPS = None
+
+
+def keops_available():
+    """True when pykeops imports (its LazyTensor is then used by "keops" and "truncated")."""
+    global _KEOPS
+    if _KEOPS is None:
+        try:
+            # KeOps prints its banner and compile messages on stdout, which would corrupt
+            # the CLI's JSON output: keep its import quiet and turn its verbosity off.
+            with contextlib.redirect_stdout(io.StringIO()):
+                import pykeops
+                import pykeops.torch  # noqa: F401
+            pykeops.set_verbose(False)
+            _KEOPS = True
+        except Exception:  # ImportError, or a broken compiler setup at import time
+            _KEOPS = False
+    return _KEOPS
+
+
+def default_cutoff(sigma, tol=DEFAULT_TOL):
+    """Cutoff radius beyond which the spatial kernel is <= tol: sigma * sqrt(log(1/tol))."""
+    return float(sigma) * math.sqrt(math.log(1.0 / tol))
+
+
+def choose_backend(n_source, n_target, sigma, extent, device, cutoff=None):
+    """Backend for "auto": see the package docstring. extent = bounding-box diagonal of both meshes."""
+    device = torch.device(device)
+    cutoff = default_cutoff(sigma) if cutoff is None else float(cutoff)
+    if device.type == "cuda":
+        return "keops" if keops_available() else "dense"
+    if max(n_source, n_target) ** 2 < DENSE_MAX_PAIRS:
+        return "dense"
+    if cutoff < 0.25 * float(extent):
+        return "truncated"
+    return "keops" if keops_available() else "dense"
+
+
+def resolve_backend(backend, points, other_points, sigma, cutoff=None):
+    """``backend``, or for "auto" ``choose_backend``'s choice for two point sets (N, 3), (M, 3)."""
+    if backend != "auto":
+        return backend
+    pts = torch.cat([points, other_points]).detach()
+    extent = float((pts.max(0).values - pts.min(0).values).norm())
+    return choose_backend(points.shape[0], other_points.shape[0], sigma, extent, points.device, cutoff)
+
+
+def check_options(sigma, kernel, backend, cutoff):
+    """InputError unless the kernel (None: not checked), backend, sigma and cutoff are valid: -> sigma."""
+    if kernel is not None and kernel not in KERNELS:
+        raise InputError(f"unknown varifold kernel {kernel!r}; choose one of {sorted(KERNELS)}")
+    if backend not in BACKENDS:
+        raise InputError(f"unknown varifold backend {backend!r}; choose one of {list(BACKENDS)}")
+    if backend == "keops" and not keops_available():
+        raise InputError("backend 'keops' needs pykeops, which is not importable here; "
+                         "install pykeops or use backend='dense' / 'truncated' / 'auto'")
+    try:
+        sigma = float(sigma)
+    except (TypeError, ValueError):
+        raise InputError(f"sigma must be a positive number, got {sigma!r}") from None
+    if not (sigma > 0 and math.isfinite(sigma)):
+        raise InputError(f"sigma must be a positive finite number, got {sigma}")
+    if cutoff is not None and not (float(cutoff) > 0 and math.isfinite(float(cutoff))):
+        raise InputError(f"cutoff must be a positive finite number or None, got {cutoff}")
+    return sigma
