@@ -42,8 +42,8 @@ def test_built_zip_contains_addon_vendored_core_and_manifest(tmp_path):
         sys.path.pop(0)
     path = build(tmp_path, bases=True)
     names = set(zipfile.ZipFile(path).namelist())
-    assert {"blender_manifest.toml", "__init__.py", "operators.py", "convert.py", "jobs.py", "bareesa/latent.py",
-            "bareesa/registration/__init__.py"} <= names
+    assert {"blender_manifest.toml", "__init__.py", "operators/__init__.py", "convert.py", "jobs.py",
+            "bareesa/latent.py", "bareesa/registration/__init__.py"} <= names
     bundled = {p.name for p in (ROOT / "bases").glob("*.npz")}
     assert {f"bareesa/bases/{n}" for n in bundled} <= names
 

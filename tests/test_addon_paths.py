@@ -351,7 +351,7 @@ def failing_shots(monkeypatch, fail):
 
 def test_generate_random_retries_with_more_steps_then_replaces_a_draw_that_cannot_be_shot(scene, monkeypatch):
     from bareesa_addon import solver
-    from bareesa_addon.operators import sample_bodies
+    from bareesa.workflows import sample_bodies
 
     assert bpy.ops.bareesa.generate_random(count=3, seed=2) == {"FINISHED"}
     plain = np.stack([key_values(o, NAMES) for o in sorted(bpy.data.collections["tiny_random_seed2"].objects,

@@ -349,3 +349,16 @@ def test_demo_registers_two_simulated_scans_and_writes_an_evenly_paced_geodesic(
     assert len(frames) == 4 and np.load(tmp_path / "demo" / "geodesic" / "codes.npy").shape == (4, 6)
     rc, _, err = run(capsys, "demo", "--basis", tmp_path / "s.npz", "--steps", "1", "-o", tmp_path / "d2")
     assert rc == 2 and "--steps" in err and not (tmp_path / "d2").exists()
+
+
+def test_extrapolate_that_cannot_be_shot_names_the_frame_and_writes_nothing(capsys, built):
+    from bareesa.mesh import load_mesh
+
+    tmp, out, seqs = built
+    v0, f = load_mesh(seqs["bend"][0])
+    far = tmp / "far.ply"  # a step 40x the bend's: the decoded meshes fold over within a few frames
+    save_mesh(far, v0 + 40 * (load_mesh(seqs["bend"][1])[0] - v0), f)
+    rc, _, err = run(capsys, "extrapolate", seqs["bend"][0], far, "--basis", out, "--steps", "6",
+                     "-o", tmp / "refused")
+    assert rc == 2 and " of 6: " in err and "frame" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp / "refused").exists()

@@ -182,3 +182,44 @@ def test_substeps_converge_towards_the_continuous_geodesic_and_keep_the_inputs()
     assert errs[0] > 1e-3 and errs[0] > 3 * errs[1] and errs[1] > 3 * errs[2]  # second order in the time step
     with pytest.raises(InputError, match="substeps"):
         shooting.extrapolate(t, f, h, a0, a1, b.weights, n_new=2, substeps=0)
+
+
+def _curved_motion():
+    """A small basis and two codes whose geodesic bends too fast for one step per frame."""
+    b = small_basis()
+    t, f, h = b.tensors()
+    return b, (t, f, h), np.zeros(4), 0.75 * np.array([1.5, -1.0, 0.8, 1.2])
+
+
+def test_strongly_curved_step_is_refined_and_matches_a_finer_step_reference():
+    b, (t, f, h), a0, a1 = _curved_motion()
+    with pytest.raises(shooting.ShootingFailed, match="frame 1 of 2: .* even at 1/1 of the frame step"):
+        shooting.extrapolate(t, f, h, a0, a1, b.weights, 2, max_substeps=1)  # no refinement allowed
+    path, report = shooting.extrapolate(t, f, h, a0, a1, b.weights, 2, with_report=True)
+    assert report.refinements > 0 and max(report.substeps) > 1 and len(report.substeps) == 2
+    assert report.max_correction <= shooting.ACCEPT_TOL and report.max_speed_change <= shooting.SPEED_TOL
+    assert set(report.to_json()) >= {"substeps", "refinements", "max_correction"}
+    reference = shooting.extrapolate(t, f, h, a0, a1, b.weights, 2, substeps=16, max_substeps=16)
+    verts, ref_verts = geodesics.decode_path(t, h, path), geodesics.decode_path(t, h, reference)
+    size = np.ptp(ref_verts[0], axis=0).max()
+    assert np.abs(verts - ref_verts).max() < 0.005 * size
+    assert np.array_equal(path[:2], np.stack([a0, a1]))
+
+
+def test_a_stalled_step_is_accepted_within_accept_tol_and_refused_beyond_it():
+    b = small_basis()
+    t, f, h = b.tensors()
+    a0, a1 = np.zeros(4), np.array([0.5, -0.3, 0.3, 0.4])
+    strict = shooting._Stepper(t, f, h, b.weights, tol=0.0, max_iter=2)  # tol floors at rounding level
+    with pytest.raises(shooting.StepNotConverged) as err:
+        strict.step(a0, a1, newton=False)
+    lenient = shooting._Stepper(t, f, h, b.weights, tol=0.0, max_iter=2, accept_tol=2 * err.value.correction)
+    x, _, correction = lenient.step(a0, a1, newton=False)
+    assert correction == pytest.approx(err.value.correction) and np.isfinite(x).all()
+
+
+def test_shoot_reports_refinement_and_keeps_the_start():
+    b, (t, f, h), a0, a1 = _curved_motion()
+    path, report = shooting.shoot(t, f, h, a0, 3 * a1, b.weights, steps=3, with_report=True)
+    assert path.shape == (4, 4) and np.array_equal(path[0], a0) and np.isfinite(path).all()
+    assert len(report.substeps) == 2 and report.refinements == int(np.log2(max(report.substeps)))

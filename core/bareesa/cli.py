@@ -1,6 +1,7 @@
 """The ``bareesa`` command line.
 
-Each verb is a small function: parse, load, call the core, print. Errors the
+Each verb is a small function: parse, load, call the core (``bareesa.workflows`` for
+everything the Blender add-on does too), write, print. Errors the
 user can act on (``BareEsaError``) print one line on stderr and exit with 2;
 anything else is a bug and keeps its traceback.
 """
@@ -145,71 +146,34 @@ def cmd_build_basis(args):
 
 
 def _load_input(basis, path):
-    """A mesh as given (validated) and whether it is in the basis' template topology: (v, f, registered)."""
+    """A mesh file as a workflow input (validated): a TemplateMesh in the basis' template topology, else a Scan."""
     from .mesh import load_mesh, validate_mesh
+    from .workflows import mesh_input
 
     v, f = load_mesh(path)
     validate_mesh(v, f, name=str(path))
-    return v, f, v.shape == basis.template.shape and np.array_equal(f, basis.faces)
-
-
-def _projected(basis, v):
-    """Code of a template-topology mesh and its off-basis detail (what the code misses)."""
-    from .latent import off_basis_detail, project_to_basis
-
-    code = project_to_basis(basis, v)[0]
-    return code, off_basis_detail(basis, v, code)
-
-
-def _codes(basis, paths, callback=None):
-    """Two meshes: (codes, details, None) by projection if both are in template topology,
-    else (None, None, the symmetric match of the raw scans)."""
-    meshes = [_load_input(basis, p) for p in paths]
-    if all(registered for _, _, registered in meshes):
-        codes, details = zip(*(_projected(basis, v) for v, _, _ in meshes))
-        return list(codes), list(details), None
-    from .registration import symmetric_match
-
-    return None, None, symmetric_match(basis, meshes[0][:2], meshes[1][:2], callback=callback)
-
-
-def _geodesic_between(args):
-    import time
-
-    from .geodesics import geodesic
-    from .basis_io import load_basis
-
-    start = time.perf_counter()
-    basis = load_basis(args.basis)
-    t, f, h = basis.tensors()
-    codes, details, matched = _codes(basis, [args.a, args.b])
-    if matched is not None:
-        return basis, matched.path, matched.distance, time.perf_counter() - start, None
-    g = geodesic(t, f, h, codes[0], codes[1], basis.weights, steps=max(args.steps, 3),
-                 metric=basis.template_metric())
-    return basis, g.path, g.distance, time.perf_counter() - start, details
+    return mesh_input(basis, v, f)
 
 
 def cmd_distance(args):
     """Geodesic distance between two meshes in the latent space of a basis."""
-    args.steps = 10
-    _, _, distance, seconds, _ = _geodesic_between(args)
-    _print({"distance": distance, "seconds": seconds}, args.json)
+    import time
+
+    from .basis_io import load_basis
+    from .workflows import Options, geodesic_between
+
+    start = time.perf_counter()
+    basis = load_basis(args.basis)
+    a, b = _load_input(basis, args.a), _load_input(basis, args.b)
+    found = geodesic_between(basis, a, b, Options(steps=10))
+    _print({"distance": found.distance, "seconds": time.perf_counter() - start}, args.json)
 
 
-def _keyframe_detail(args, details, times):
-    """Off-basis detail of the two input meshes along the output frames (``detail_along``), or None
-    when the inputs have none (``details`` None: a raw scan among them) or --no-detail."""
-    from .latent import detail_along
-
-    if details is None or args.no_detail:
-        return None
-    return detail_along(details[0], details[1], times)
-
-
-def _detail_report(details, detail):
-    """RMS off-basis detail of the inputs (what the basis misses) and whether the frames keep it."""
-    if details is None:
+def _detail_report(ends, detail):
+    """RMS off-basis detail of the two inputs (what the basis misses; only when both are in template
+    topology) and whether the frames keep it: ends (workflows.Code, Code), detail (T, N, 3) or None."""
+    details = [end.detail for end in ends]
+    if any(d is None for d in details):
         return {}
     rms = float(np.sqrt(np.mean([np.sum(d ** 2, axis=1).mean() for d in details])))
     return {"off_basis_rms": rms, "detail_kept": detail is not None}
@@ -217,29 +181,23 @@ def _detail_report(details, detail):
 
 def cmd_interpolate(args):
     """Evenly paced geodesic in-betweens of two meshes, written as T meshes and their codes."""
-    from .geodesics import keyframe_path
+    import time
+
+    from .basis_io import load_basis
+    from .workflows import Options, path_between
 
     if args.steps < 2:
         raise InputError(f"--steps must be at least 2, got {args.steps}")
-    basis, path, distance, seconds, details = _geodesic_between(args)
-    t, f, h = basis.tensors()
-    codes = keyframe_path(t, f, h, path, basis.weights, args.steps, anchor=not args.no_anchor)
-    detail = _keyframe_detail(args, details, np.linspace(0.0, 1.0, len(codes)))
-    _write_frames(args.output, basis, codes, detail=detail)
-    result = {"distance": distance, "seconds": seconds, "frames": args.steps, "output": str(args.output),
-              **_detail_report(details, detail)}
+    start = time.perf_counter()
+    basis = load_basis(args.basis)
+    a, b = _load_input(basis, args.a), _load_input(basis, args.b)
+    found = path_between(basis, a, b, args.steps, Options(steps=max(args.steps, 3)), anchor=not args.no_anchor,
+                         keep_detail=not args.no_detail)
+    seconds = time.perf_counter() - start
+    _write_frames(args.output, basis, found.frames, detail=found.detail)
+    result = {"distance": found.distance, "seconds": seconds, "frames": args.steps, "output": str(args.output),
+              **_detail_report(found.ends, found.detail)}
     _print(result, args.json, "geodesic interpolation")
-
-
-def _code_of(basis, path):
-    """Code of one mesh and its off-basis detail: projection if it is in template topology, else
-    registration of the scan (detail None)."""
-    v, f, registered = _load_input(basis, path)
-    if registered:
-        return _projected(basis, v)
-    from .registration import register
-
-    return register(basis, v, f).code, None
 
 
 def _write_frames(output, basis, codes, prefix="frame", detail=None):
@@ -263,31 +221,31 @@ def cmd_extrapolate(args):
     import time
 
     from .basis_io import load_basis
-    from .shooting import extrapolate
+    from .workflows import extrapolate
 
     if args.steps < 1:
         raise InputError(f"--steps must be at least 1, got {args.steps}")
     start = time.perf_counter()
     basis = load_basis(args.basis)
-    (a0, d0), (a1, d1) = _code_of(basis, args.a), _code_of(basis, args.b)
-    t, f, h = basis.tensors()
-    path = extrapolate(t, f, h, a0, a1, basis.weights, args.steps, anchor=not args.no_anchor)
-    details = None if d0 is None or d1 is None else [d0, d1]
-    detail = _keyframe_detail(args, details, np.arange(len(path)))
-    _write_frames(args.output, basis, path, detail=detail)
-    _print({"frames": len(path), "seconds": time.perf_counter() - start, "output": str(args.output),
-            **_detail_report(details, detail)}, args.json, "geodesic extrapolation (frames 0 and 1 are the inputs)")
+    a, b = _load_input(basis, args.a), _load_input(basis, args.b)
+    motion = extrapolate(basis, a, b, args.steps, anchor=not args.no_anchor, keep_detail=not args.no_detail)
+    _write_frames(args.output, basis, motion.path, detail=motion.detail)
+    # where a step did not converge, shooting refined time (shooting.ShootingReport): say where
+    refined = {"shooting": motion.shooting.to_json()} if args.json else {
+        "steps per frame": ",".join(str(k) for k in motion.shooting.substeps)}
+    _print({"frames": len(motion.path), "seconds": time.perf_counter() - start, "output": str(args.output),
+            **refined, **_detail_report(motion.ends, motion.detail)}, args.json,
+           "geodesic extrapolation (frames 0 and 1 are the inputs)")
 
 
 def cmd_transfer(args):
     """Put the motion of the given frames on another identity (swap the identity group)."""
     from .basis_io import load_basis
-    from .statistics import transfer_motion
+    from .workflows import transfer
 
     basis = load_basis(args.basis)
-    codes = np.stack([_code_of(basis, p)[0] for p in args.frames])
-    identity = _code_of(basis, args.identity)[0]
-    out = transfer_motion(codes, identity, basis.group_slice(args.group))
+    frames = [_load_input(basis, p) for p in args.frames]
+    out = transfer(basis, frames, _load_input(basis, args.identity), args.group).motion
     _write_frames(args.output, basis, out)
     _print({"frames": len(out), "output": str(args.output)}, args.json, "motion transfer")
 
@@ -295,23 +253,19 @@ def cmd_transfer(args):
 def cmd_sample(args):
     """Random shapes: Gaussian mixture on initial velocities at the template, then shoot."""
     from .basis_io import load_basis
-    from .statistics import fit_distribution, log_map, sample_codes
+    from .workflows import random_bodies, stored_distribution
 
     if args.n < 1:
         raise InputError(f"-n must be at least 1, got {args.n}")
     basis = load_basis(args.basis)
-    t, f, h = basis.tensors()
-    if args.fit:
-        codes = np.stack([_code_of(basis, p)[0] for p in args.fit])
-        vel = log_map(t, f, h, codes, basis.weights)
-        dist = fit_distribution(vel, basis.groups, {g: args.components for g in basis.groups}, seed=args.seed)
-    else:
-        dist = {k: v for k, v in basis.extras.items() if k.startswith("gmm_")}
-        if not dist:
-            raise InputError(f"basis '{basis.name}' carries no fitted distribution: give --fit FILES")
-    codes = sample_codes(t, f, h, dist, basis.groups, basis.weights, args.n, seed=args.seed)
-    _write_frames(args.output, basis, codes, prefix="sample")
-    _print({"samples": args.n, "seed": args.seed, "output": str(args.output)}, args.json, "random shapes")
+    fit = [_load_input(basis, p) for p in args.fit] if args.fit else None
+    if fit is None and not stored_distribution(basis):
+        raise InputError(f"basis '{basis.name}' carries no fitted distribution: give --fit FILES")
+    bodies = random_bodies(basis, args.n, args.seed, fit=fit, components=args.components)
+    _write_frames(args.output, basis, bodies.codes, prefix="sample")
+    # draws that could not be shot were replaced by further draws (workflows.sample_bodies): say how many
+    _print({"samples": args.n, "seed": args.seed, "replaced": bodies.replaced, "output": str(args.output)},
+           args.json, "random shapes")
 
 
 def load_landmarks(path):
@@ -340,7 +294,7 @@ def cmd_register(args):
     from .basis_io import load_basis
     from .mesh import load_mesh, save_mesh, validate_mesh
     from .progress import tqdm_callback
-    from .registration import register
+    from .workflows import Scan, code_of
 
     basis = load_basis(args.basis)
     verts, faces = load_mesh(args.scan)
@@ -348,7 +302,7 @@ def cmd_register(args):
     landmarks = load_landmarks(args.landmarks) if args.landmarks else None
     callback, close = tqdm_callback("register", disable=args.json or None)
     try:
-        res = register(basis, verts, faces, landmarks=landmarks, callback=callback)
+        res = code_of(basis, Scan(verts, faces, landmarks=landmarks), callback=callback).registration
     finally:
         close()
     save_mesh(args.output, res.vertices, basis.faces)
@@ -374,14 +328,13 @@ def cmd_demo(args):
     """The solver end to end on a bundled basis: two simulated scans -> registration -> geodesic."""
     import time
 
-    from .evaluation import vertex_error
-    from .geodesics import geodesic, keyframe_path
     from .basis_io import load_basis
+    from .evaluation import vertex_error
     from .mesh import save_mesh
     from .progress import tqdm_callback
-    from .registration import register
     from .scan_simulator import apply_similarity, simulate_scan
     from .statistics import sample_velocities
+    from .workflows import KnownCode, Options, Scan, code_of, path_between, stored_distribution
 
     if args.steps < 2:
         raise InputError(f"--steps must be at least 2, got {args.steps}")
@@ -391,7 +344,7 @@ def cmd_demo(args):
     out.mkdir(parents=True, exist_ok=True)
     print(f"BaRe-ESA {__version__} demo on basis '{basis.name}': {basis.template.shape[0]} vertices, "
           f"{basis.n_fields} fields ({', '.join(f'{g} {b - a}' for g, (a, b) in basis.groups.items())})")
-    dist = {k: v for k, v in basis.extras.items() if k.startswith("gmm_")}
+    dist = stored_distribution(basis)
     rng = np.random.default_rng(args.seed)
     truths = (sample_velocities(dist, basis.groups, 2, args.seed) if dist
               else rng.normal(scale=0.5, size=(2, basis.n_fields)))
@@ -402,7 +355,7 @@ def cmd_demo(args):
         save_mesh(out / f"scan_{name}.ply", scan_v, scan_f)
         callback, close = tqdm_callback(f"register scan {name}")
         try:
-            res = register(basis, scan_v, scan_f, callback=callback)
+            res = code_of(basis, Scan(scan_v, scan_f), callback=callback).registration
         finally:
             close()
         save_mesh(out / f"scan_{name}_registered.ply", res.vertices, basis.faces)
@@ -411,10 +364,9 @@ def cmd_demo(args):
                      f"vertex error {err:.4g} {basis.units} (mean, against the true correspondence)"))
         codes.append(res.code)
     t0 = time.perf_counter()
-    t, f, h = basis.tensors()
-    path = geodesic(t, f, h, codes[0], codes[1], basis.weights, steps=max(args.steps, 3),
-                    metric=basis.template_metric()).path
-    _write_frames(out / "geodesic", basis, keyframe_path(t, f, h, path, basis.weights, args.steps))
+    found = path_between(basis, KnownCode(codes[0]), KnownCode(codes[1]), args.steps,
+                         Options(steps=max(args.steps, 3)))
+    _write_frames(out / "geodesic", basis, found.frames)
     rows.append(("geodesic/", f"{args.steps} evenly paced frames A -> B", time.perf_counter() - t0,
                  "in the template frame"))
     print(f"\nwrote to {out}/ ({time.perf_counter() - start:.0f} s in all)")

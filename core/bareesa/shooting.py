@@ -13,10 +13,17 @@ approximated from a latent metric matrix that is computed rarely: once per
 extrapolation and again only when the iteration stops contracting (the metric
 varies slowly along the path), refined between refreshes by Broyden updates.
 A step has converged when the remaining correction is below ``tol`` times the
-step length, both measured in the metric. Strongly curved steps, where that
-iteration does not contract, are finished by a damped Newton method with the
-exact Jacobian (double backpropagation; P energy gradients per iteration).
+step length, both measured in the metric (or below ``accept_tol`` when the
+iteration stalls there). Where a step does not converge, or changes the metric
+speed (which a geodesic keeps), ``extrapolate`` and ``shoot`` refine time: the step
+is halved, from the discrete geodesic midpoint of the last two points, and
+re-solved, down to 1/MAX_SUBSTEPS of a frame (``ShootingReport`` says where). A
+single step (``geodesic_step``) that quasi-Newton cannot solve is finished by a
+damped Newton method with the exact Jacobian (double backpropagation; P energy
+gradients per iteration), which is also the last resort at the finest refinement.
 """
+
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -31,6 +38,17 @@ from .progress import Monitor
 #: A step is accepted when the quasi-Newton correction, in the metric norm, is below
 #: STEP_TOL x the step length in the same norm (rounding noise sits near 1e-11).
 STEP_TOL = 1e-8
+#: A step whose iteration stalls before STEP_TOL is accepted when its remaining correction is below
+#: ACCEPT_TOL x the step length. Measured (bench/shooting_tolerance.py, humanoid random bodies, 8 steps):
+#: every step solved only to 1e-3 moves the frames by up to 0.7 mm (0.04 % of the body), to 1e-4 by
+#: 0.045 mm, below the time-discretisation error itself (0.14 mm between 1 and 2 steps per frame).
+ACCEPT_TOL = 1e-4
+#: A step that does not converge is halved, down to 1/MAX_SUBSTEPS of a frame ...
+MAX_SUBSTEPS = 64
+#: ... and so is a step whose metric speed differs from the previous step's by more than this share.
+#: A discrete geodesic keeps its speed up to O(h^3): healthy humanoid shots change it by at most
+#: 1.7e-4 per step at one step per frame, 2.6e-5 at two (bench/shooting_tolerance.py).
+SPEED_TOL = 0.01
 #: The metric matrix is recomputed when one iteration shrinks the correction by less than this.
 REFRESH_RATIO = 0.3
 #: Metric eigenvalues below NULL_RTOL x the largest are null directions (dependent fields).
@@ -56,7 +74,8 @@ def _check_codes(p, **codes):
 class _Stepper:
     """Consecutive geodesic steps of one problem sharing an approximate inverse Jacobian."""
 
-    def __init__(self, template, faces, fields, weights, tol=STEP_TOL, max_iter=40, refresh=REFRESH_RATIO):
+    def __init__(self, template, faces, fields, weights, tol=STEP_TOL, max_iter=40, refresh=REFRESH_RATIO,
+                 accept_tol=None):
         for what, x in (("template", template), ("fields", fields)):
             if not torch.isfinite(x).all():
                 raise InputError(f"NaN or infinite values in the basis {what}; check the basis file")
@@ -65,6 +84,7 @@ class _Stepper:
         self.p = fields.shape[0]
         floor = 1e3 * torch.finfo(template.dtype).eps  # reachable in the tensors' precision
         self.tol, self.max_iter, self.refresh = max(float(tol), floor), int(max_iter), float(refresh)
+        self.accept_tol = self.tol if accept_tol is None else max(float(accept_tol), self.tol)
         self.metric = None  # G (P, P) numpy, the norm of the convergence test
         self.inv_jac = None  # H ~ (dPhi/dalpha^2)^-1 = -(2 G)^-1, Broyden-updated
         self.n_grad = self.n_metric = 0
@@ -101,6 +121,17 @@ class _Stepper:
         self.metric = gram
         self.inv_jac = -(evecs[:, keep] / (2 * evals[keep])) @ evecs[:, keep].T
 
+    def speed_change(self, a0, a1, a2):
+        """|speed(a1 -> a2) / speed(a0 -> a1) - 1| of two consecutive steps (P,), speeds in the metric at
+        each step's midpoint (a discrete geodesic keeps its speed up to the discretisation)."""
+        path = torch.as_tensor(np.stack([a0, a1, a2]), dtype=self.template.dtype, device=self.template.device)
+        with torch.no_grad():
+            w = path_energy(decode(self.template, self.fields, path), self.faces, self.weights, per_step=True)
+        w = w.double().cpu().numpy()
+        if not np.isfinite(w).all():
+            raise StepNotConverged(np.inf, nonfinite=True)
+        return abs(float(np.sqrt(w[1] / w[0])) - 1.0) if w[0] > 0 else (0.0 if w[1] == 0 else np.inf)
+
     def norm(self, v):
         """sqrt(v^T G v), the metric length of a latent vector."""
         return float(np.sqrt(abs(v @ self.metric @ v)))
@@ -123,38 +154,63 @@ class _Stepper:
                                  "use a smaller velocity or fewer steps")
         return jac
 
-    def step(self, a0, a1, guess=None, c=None):
-        """alpha^2 continuing a0, a1 (P,) -> (alpha^2, dW/da at (alpha^1, alpha^2) for the next step).
+    def step(self, a0, a1, guess=None, c=None, newton=True):
+        """alpha^2 continuing a0, a1 (P,) -> (alpha^2, dW/da at (alpha^1, alpha^2) for the next step,
+        remaining correction relative to the step length).
 
-        guess: initial alpha^2 (default 2 a1 - a0); c: dW/db at (a0, a1) if already known.
+        guess: initial alpha^2 (default 2 a1 - a0); c: dW/db at (a0, a1) if already known; newton: try
+        the exact-Jacobian Newton fallback when quasi-Newton fails (P gradients per iteration: a caller
+        that can halve the step instead does not). A step is accepted at ``tol``, or at ``accept_tol``
+        when the iterations get no further; otherwise StepNotConverged (a ShootingFailed) carries the
+        smallest correction reached.
         """
         if c is None:
             c = self.grads(a0, a1)[1]
         x = 2 * a1 - a0 if guess is None else np.asarray(guess, dtype=np.float64)
-        try:
-            return self._quasi_newton(a0, a1, x, c)
-        except _Diverged as div:
-            return self._newton(a0, a1, div.best, c)
-
-    def _quasi_newton(self, a0, a1, x, c):
-        """Broyden iteration from the metric's chord Jacobian; raises _Diverged(best x) when it fails."""
         fresh = self.inv_jac is None
         if fresh:
             self.refresh_jacobian((a1 + x) / 2)
         length = self.norm(a1 - a0)
+        try:
+            return self._quasi_newton(a1, x, c, length, fresh)
+        except _Diverged as div:
+            best = div
+        if best.correction <= self.accept_tol:
+            return self._accept(a1, best.x, best.correction)
+        if not newton:
+            raise StepNotConverged(best.correction, best.nonfinite)
+        try:
+            return self._newton(a1, best.x, c, length)
+        except ShootingFailed:  # a non-finite energy or Jacobian on the way
+            best.nonfinite = True
+        except _Diverged as div:
+            if div.correction < best.correction:
+                best = div
+        if best.correction <= self.accept_tol:
+            return self._accept(a1, best.x, best.correction)
+        raise StepNotConverged(best.correction, best.nonfinite)
+
+    def _accept(self, a1, x, correction):
+        """The best iterate of a step that stalled within ``accept_tol``: -> as ``step``."""
+        return x, self.grads(a1, x)[1], correction
+
+    def _quasi_newton(self, a1, x, c, length, fresh):
+        """Broyden iteration from the metric's chord Jacobian (``fresh``: just computed at this step);
+        raises _Diverged(best) when it fails."""
         g_a, g_b = self.grads(a1, x)
-        r, prev, best = c + g_a, None, (np.inf, x)
+        r, prev, best = c + g_a, None, _Diverged(np.inf, x)
         for _ in range(self.max_iter):
             d = -self.inv_jac @ r
             err = self.norm(d)
             if not (np.isfinite(err) and np.isfinite(d).all()):
-                raise _Diverged(best[1])
-            best = min(best, (err, x), key=lambda b: b[0])
+                raise best.flag_nonfinite()
+            if err / length < best.correction:
+                best = _Diverged(err / length, x)
             if err <= self.tol * length:
-                return x, g_b
+                return x, g_b, err / length
             if prev is not None and err > self.refresh * prev:
                 if fresh and err > prev:  # diverging although the metric is current: far from linear
-                    raise _Diverged(best[1])
+                    raise best
                 if not fresh:
                     self.refresh_jacobian((a1 + x) / 2)  # the metric moved: recompute it here
                     fresh, prev = True, None
@@ -163,30 +219,36 @@ class _Stepper:
             try:
                 g_a, g_b = self.grads(a1, x + d)
             except ShootingFailed:
-                raise _Diverged(best[1]) from None
+                raise best.flag_nonfinite() from None
             x, y, r = x + d, c + g_a - r, c + g_a
             hy = self.inv_jac @ y
             gd = self.metric @ d  # Broyden in the metric inner product: invariant to the scale of the fields
             denom = gd @ hy
             if abs(denom) > 1e-14 * np.linalg.norm(gd) * np.linalg.norm(hy):
                 self.inv_jac += np.outer(d - hy, gd @ self.inv_jac) / denom
-        raise _Diverged(best[1])
+        raise best
 
-    def _newton(self, a0, a1, x, c, max_iter=8):
-        """Damped Newton with the exact Jacobian (the fallback for strongly curved steps) -> (alpha^2, next c)."""
+    def _newton(self, a1, x, c, length, max_iter=8):
+        """Damped Newton with the exact Jacobian (the fallback for strongly curved steps) -> as ``step``;
+        raises _Diverged(best) when it does not reach ``tol``."""
         self.refresh_jacobian((a1 + x) / 2)
         chord = self.inv_jac
-        length = self.norm(a1 - a0)
         merit = lambda r: self.norm(chord @ r)  # noqa: E731  the residual in the metric's dual norm
         r = c + self.grads(a1, x)[0]
+        best = _Diverged(np.inf, x)
         for _ in range(max_iter):
             jac = self.jacobian(a1, x)
             d = -np.linalg.lstsq(jac, r, rcond=None)[0]
-            if self.norm(d) <= self.tol * length:
+            err = self.norm(d) / length
+            if not np.isfinite(err):
+                raise best.flag_nonfinite()
+            if err < best.correction:
+                best = _Diverged(err, x)
+            if err <= self.tol:
                 x = x + d
                 g_a, g_b = self.grads(a1, x)
                 self.inv_jac = np.linalg.pinv(jac)  # the exact Jacobian starts the next step's Broyden model
-                return x, g_b
+                return x, g_b, err
             t, m0 = 1.0, merit(r)
             while t >= 1 / 64:  # backtracking on the metric-dual residual
                 try:
@@ -194,22 +256,43 @@ class _Stepper:
                     if merit(r_new) < (1 - 1e-4 * t) * m0:
                         break
                 except ShootingFailed:
-                    pass
+                    best.nonfinite = True
                 t /= 2
             else:
                 break
             x, r = x + t * d, r_new
-        raise ShootingFailed(f"a geodesic step did not converge (remaining correction {self.norm(d) / length:.1e} "
-                             "of the step length in the metric norm): the motion bends too fast for this step "
-                             "size; use smaller steps (more substeps when extrapolating, more steps when shooting)")
+        raise best
 
 
 class _Diverged(Exception):
-    """Internal: quasi-Newton failed; carries the best iterate for the Newton fallback."""
+    """Internal: an iteration of a step failed; carries its best iterate and that iterate's remaining
+    correction (relative to the step length), and whether it met non-finite energies."""
 
-    def __init__(self, best):
-        super().__init__("quasi-Newton diverged")
-        self.best = best
+    def __init__(self, correction, x, nonfinite=False):
+        super().__init__("the iteration of a geodesic step diverged")
+        self.correction, self.x, self.nonfinite = float(correction), x, nonfinite
+
+    def flag_nonfinite(self):
+        self.nonfinite = True
+        return self
+
+
+class StepNotConverged(ShootingFailed):
+    """A geodesic step that no iteration could solve to ``accept_tol``: the smallest remaining
+    correction reached (relative to the step length), whether non-finite energies were met, and
+    ``reason``, the message without advice (callers that refine the step add their own)."""
+
+    def __init__(self, correction, nonfinite=False):
+        if nonfinite:
+            self.reason = (f"a geodesic step met energies that are not finite (best remaining correction "
+                           f"{correction:.1e}): the decoded meshes degenerate")
+            advice = "the coefficients are too large for the basis; use a smaller velocity or fewer steps"
+        else:
+            self.reason = (f"a geodesic step did not converge (remaining correction {correction:.1e} of the step "
+                           "length in the metric norm)")
+            advice = "the motion bends too fast for this step size; use smaller steps"
+        super().__init__(f"{self.reason}: {advice}")
+        self.correction, self.nonfinite = correction, nonfinite
 
 
 def geodesic_step(template, faces, fields, alpha0, alpha1, weights, tol=STEP_TOL, max_iter=40):
@@ -225,18 +308,90 @@ def geodesic_step(template, faces, fields, alpha0, alpha1, weights, tol=STEP_TOL
     return stepper.step(codes["alpha0"], codes["alpha1"])[0]
 
 
+@dataclass
+class ShootingReport:
+    """How an initial value problem was solved: for each new frame the number of steps it was split
+    into (1 = one discrete step per frame; the time refinement), how many times a step was halved,
+    the largest remaining correction accepted (relative to its step length, metric norm), the largest
+    relative change of metric speed between two consecutive steps, and the energy gradients and metric
+    matrices it took."""
+
+    substeps: list
+    refinements: int
+    max_correction: float
+    max_speed_change: float
+    n_grad: int
+    n_metric: int
+
+    def to_json(self):
+        """JSON-ready dict of the report."""
+        return {"substeps": [int(k) for k in self.substeps], "refinements": int(self.refinements),
+                "max_correction": float(self.max_correction),
+                "max_speed_change": float(self.max_speed_change), "energy_gradients": int(self.n_grad),
+                "metric_matrices": int(self.n_metric)}
+
+
+def _march(stepper, start, n_frames, substeps, midpoint, monitor, max_substeps, speed_tol):
+    """Continue the discrete geodesic through start = (prev, cur), 1/substeps of a frame apart, by n_frames
+    frames: -> (frames (n_frames, P), ShootingReport).
+
+    A step is refused when it does not converge or when it changes the metric speed by more than
+    ``speed_tol`` (a geodesic keeps its speed: a jump means the step is too long for the curvature,
+    even where its equation was solved). A refused step is halved (the new previous point is the
+    discrete geodesic midpoint of the last two, ``midpoint``) and re-solved from that last good state,
+    down to 1/max_substeps of a frame; the finer spacing is kept for the rest of the path.
+    """
+    history, level, c = list(start), substeps, None
+    frames, per_frame, refinements, worst, fastest = [], [], 0, 0.0, 0.0
+    for k in range(n_frames):
+        remaining = level
+        while remaining:
+            monitor.check()
+            guess = 3 * history[-1] - 3 * history[-2] + history[-3] if len(history) >= 3 else None
+            try:
+                x, c, correction = stepper.step(history[-2], history[-1], guess, c, newton=2 * level > max_substeps)
+                change = stepper.speed_change(history[-2], history[-1], x)
+                problem = None if change <= speed_tol else (
+                    f"a step changes the metric speed of the geodesic by {change:.0%} (a geodesic keeps its speed)")
+            except StepNotConverged as err:
+                problem = err.reason
+            if problem is None:
+                worst, fastest = max(worst, correction), max(fastest, change)
+                history.append(x)
+                remaining -= 1
+                continue
+            if 2 * level > max_substeps:
+                raise ShootingFailed(f"frame {k + 1} of {n_frames}: {problem} even at 1/{level} of the frame step; "
+                                     "the motion leaves the part of the latent space where the basis deforms "
+                                     "smoothly: ask for fewer frames or start from closer codes (a smaller velocity)")
+            history, c = [midpoint(history[-2], history[-1]), history[-1]], None
+            level, remaining, refinements = 2 * level, 2 * remaining, refinements + 1
+            monitor.report(k / n_frames, f"frame {k + 1}/{n_frames}: step refined to 1/{level}")
+        history = history[-3:]
+        frames.append(history[-1])
+        per_frame.append(level)
+        monitor.report((k + 1) / n_frames, f"frame {k + 1}/{n_frames}" + (f" (1/{level} steps)" if level > 1 else ""))
+    report = ShootingReport(per_frame, refinements, worst, fastest, stepper.n_grad, stepper.n_metric)
+    return np.array(frames).reshape(n_frames, -1), report
+
+
 def extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new, callback=None, cancel=None,
-                tol=STEP_TOL, substeps=1, anchor=False):
-    """Continue the discrete geodesic through alpha^0, alpha^1 by n_new steps: -> (n_new + 2, P).
+                tol=STEP_TOL, substeps=1, anchor=False, accept_tol=ACCEPT_TOL, max_substeps=MAX_SUBSTEPS,
+                speed_tol=SPEED_TOL, with_report=False):
+    """Continue the discrete geodesic through alpha^0, alpha^1 by n_new steps: -> (n_new + 2, P)
+    (and a ShootingReport when ``with_report``).
 
     template (N, 3), faces (F, 3), fields (P, N, 3) torch tensors; codes (P,). The
     steps share one quasi-Newton Jacobian (the metric matrix is recomputed only
     when the iteration stops contracting) and start from a quadratic predictor.
-    substeps > 1 refines time: the boundary value geodesic alpha^0 -> alpha^1 with
-    substeps intervals is continued by n_new * substeps steps, and every substeps-th
-    point is returned (strongly curved motions need it: a step that does not
-    converge raises ShootingFailed). anchor: keep the body's unmoving part where the
-    straight latent line alpha^0 + k (alpha^1 - alpha^0) puts it (``geodesics.anchor_path``;
+    substeps > 1 refines time from the start: the boundary value geodesic alpha^0 -> alpha^1
+    with substeps intervals is continued by n_new * substeps steps, and every substeps-th
+    point is returned. Where a step does not converge (a strongly curved motion) it is halved
+    automatically, down to 1/max_substeps of a frame (``ShootingReport.substeps`` says where),
+    and so is a step that changes the metric speed by more than ``speed_tol``; a step is accepted
+    at ``tol`` or, when the iteration stalls, at ``accept_tol`` (see ACCEPT_TOL).
+    ShootingFailed names the frame that could not be reached. anchor: keep the body's unmoving part
+    where the straight latent line alpha^0 + k (alpha^1 - alpha^0) puts it (``geodesics.anchor_path``;
     the predicted frames only).
     """
     p = fields.shape[0]
@@ -250,24 +405,24 @@ def extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new, callbac
         raise InputError(f"substeps must be a positive integer, got {substeps}")
     substeps = int(substeps)
     monitor = Monitor("extrapolate", callback, cancel)
-    path = [codes["alpha0"], codes["alpha1"]]
+    stepper = _Stepper(template, faces, fields, weights, tol, accept_tol=accept_tol)
+
+    def midpoint(a, b):
+        """The discrete geodesic midpoint of two codes (a three-point boundary value problem)."""
+        return geodesic(template, faces, fields, a, b, weights, steps=3, metric=stepper.metric,
+                        cancel=cancel).path[1]
+
+    start = (codes["alpha0"], codes["alpha1"])
     if substeps > 1 and n_new > 0:
         monitor.report(0.0, "geodesic through the two given codes")
-        path = list(geodesic(template, faces, fields, path[0], path[1], weights, steps=substeps + 1,
-                             cancel=cancel).path[-2:])
-        path[-1] = codes["alpha1"]
-    stepper = _Stepper(template, faces, fields, weights, tol)
-    c = None
-    total = n_new * substeps
-    for k in range(total):
-        monitor.check()
-        monitor.report(k / max(total, 1), f"step {k + 1}/{total}")
-        guess = 3 * path[-1] - 3 * path[-2] + path[-3] if len(path) >= 3 else None
-        x, c = stepper.step(path[-2], path[-1], guess, c)
-        path.append(x)
+        start = tuple(geodesic(template, faces, fields, *start, weights, steps=substeps + 1, cancel=cancel).path[-2:])
+        start = (start[0], codes["alpha1"])
+    new, report = _march(stepper, start, n_new, substeps, midpoint, monitor, max(max_substeps, substeps), speed_tol)
     monitor.report(1.0, "done")
-    out = np.stack([codes["alpha0"], codes["alpha1"]] + path[1 + substeps::substeps])
-    return anchor_extrapolation(template, fields, out) if anchor else out
+    out = np.concatenate([np.stack([codes["alpha0"], codes["alpha1"]]), new])
+    if anchor:
+        out = anchor_extrapolation(template, fields, out)
+    return (out, report) if with_report else out
 
 
 def anchor_extrapolation(template, fields, path):
@@ -278,13 +433,16 @@ def anchor_extrapolation(template, fields, path):
     return anchor_path(template, fields, path, line, fixed=(0, 1))
 
 
-def shoot(template, faces, fields, alpha0, velocity, weights, steps=10, callback=None, cancel=None):
-    """exp map: geodesic from alpha0 with initial velocity over unit time, steps >= 1: -> (steps + 1, P)."""
+def shoot(template, faces, fields, alpha0, velocity, weights, steps=10, callback=None, cancel=None,
+          with_report=False):
+    """exp map: geodesic from alpha0 with initial velocity over unit time, steps >= 1: -> (steps + 1, P)
+    (and a ShootingReport when ``with_report``; steps that do not converge are refined as in ``extrapolate``)."""
     if steps < 1:
         raise InputError(f"shooting needs at least one step, got {steps}")
     codes = _check_codes(fields.shape[0], alpha0=alpha0, velocity=velocity)
     alpha1 = codes["alpha0"] + codes["velocity"] / steps
-    return extrapolate(template, faces, fields, codes["alpha0"], alpha1, weights, steps - 1, callback, cancel)
+    return extrapolate(template, faces, fields, codes["alpha0"], alpha1, weights, steps - 1, callback, cancel,
+                       with_report=with_report)
 
 
 def initial_velocity(path):

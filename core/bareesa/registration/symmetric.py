@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from ..errors import InputError
 from ..geodesics import decode_path, geodesic, straight_path
-from ..h2_metric import path_energy
+from ..h2_metric import H2Weights, path_energy
 from ..latent import decode
 from ..optimize import minimize_lbfgs
 from ..progress import Monitor
@@ -42,45 +42,49 @@ class Matching:
         return np.stack([self.frame_transform(float(t)).invert(v) for t, v in zip(times, frames)])
 
 
-def symmetric_match(basis, scan0, scan1, steps=10, schedule=None, callback=None, cancel=None,
-                    dtype=torch.float64):
+def symmetric_match(basis, scan0, scan1, steps=10, schedule=None, weights=None, prealign=True, callback=None,
+                    cancel=None, dtype=torch.float64, device="cpu"):
     """Codes of two raw scans and the geodesic between them in one optimisation (paper eq. sym. match).
 
     scan0, scan1: (verts (M, 3), faces (G, 3)). Each scan is first registered (warm start,
-    its own pre-alignment); then weight * [Gamma(F(alpha_0), q0) + Gamma(F(alpha_1), q1)] + E(alpha)
-    is minimised jointly over the whole path at the finest level of the schedule.
+    its own pre-alignment unless prealign is False); then weight * [Gamma(F(alpha_0), q0) +
+    Gamma(F(alpha_1), q1)] + E(alpha) is minimised jointly over the whole path at the finest level
+    of the schedule. weights: the H2 weights of E and of the registrations (default the basis');
+    dtype, device: of the objective.
     """
     start = time.perf_counter()
     if steps < 2:
         raise InputError(f"a path needs at least 2 time points, got {steps}")
     monitor = Monitor("symmetric matching", callback, cancel)
     levels = tuple(basis.schedule if schedule is None else schedule)
-    r0 = register(basis, *scan0, schedule=levels, callback=monitor.scaled(0.0, 0.4), cancel=cancel, dtype=dtype)
-    r1 = register(basis, *scan1, schedule=levels, callback=monitor.scaled(0.4, 0.8), cancel=cancel, dtype=dtype)
-    template, faces, fields = basis.tensors(dtype=dtype)
+    weights = H2Weights.parse(basis.weights if weights is None else weights)
+    options = dict(schedule=levels, prealign=prealign, metric=weights, cancel=cancel, dtype=dtype, device=device)
+    r0 = register(basis, *scan0, callback=monitor.scaled(0.0, 0.4), **options)
+    r1 = register(basis, *scan1, callback=monitor.scaled(0.4, 0.8), **options)
+    template, faces, fields = basis.tensors(dtype=dtype, device=device)
     last = levels[-1]
     sigma = last.sigma * basis.scale
-    losses = [VarifoldLoss(torch.as_tensor(r.transform.apply(np.asarray(v, dtype=np.float64)), dtype=dtype),
-                           torch.as_tensor(np.asarray(f), dtype=torch.long), sigma)
+    losses = [VarifoldLoss(torch.as_tensor(r.transform.apply(np.asarray(v, dtype=np.float64)), dtype=dtype,
+                                           device=device),
+                           torch.as_tensor(np.asarray(f), dtype=torch.long, device=device), sigma)
               for r, (v, f) in ((r0, scan0), (r1, scan1))]
     p = fields.shape[0]
-    ramp = torch.linspace(0, 1, steps, dtype=dtype)[1:-1, None]
+    ramp = torch.linspace(0, 1, steps, dtype=dtype, device=device)[1:-1, None]
     terms = {}
 
     def objective(x):
         # variables: both end codes, then the interior's deviation from the straight line (conditioning)
-        x = x.to(dtype)
+        x = x.to(dtype=dtype, device=device)
         a0, a1, dev = x[:p], x[p:2 * p], x[2 * p:].reshape(steps - 2, p)
         path = torch.cat([a0[None], (1 - ramp) * a0 + ramp * a1 + dev, a1[None]])
         meshes = decode(template, fields, path)
-        energy = path_energy(meshes, faces, basis.weights)
+        energy = path_energy(meshes, faces, weights)
         gammas = [losses[0](meshes[0], faces), losses[1](meshes[-1], faces)]
         terms.update(energy=energy, gammas=gammas)
         return last.weight * (gammas[0] + gammas[1]) + energy
 
-    init = geodesic(template, faces, fields, r0.code, r1.code, basis.weights, steps=steps, cancel=cancel,
-                    metric=basis.template_metric(),
-                    max_iter=100)
+    init = geodesic(template, faces, fields, r0.code, r1.code, weights, steps=steps, cancel=cancel,
+                    metric=basis.template_metric(weights), max_iter=100)
     straight = straight_path(r0.code, r1.code, steps)
     x0 = np.concatenate([r0.code, r1.code, (init.path - straight)[1:-1].ravel()])
     x, value, _ = minimize_lbfgs(objective, x0, monitor, max_iter=last.max_iter, progress=(0.8, 1.0),

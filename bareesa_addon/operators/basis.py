@@ -1,0 +1,107 @@
+"""Load Template and Build Basis."""
+
+from pathlib import Path
+
+import bpy
+import numpy as np
+from bpy.props import StringProperty
+
+from .. import convert as cv
+from .. import solver
+from ..jobs import SolveOperator, Task, is_user_error
+from ..preferences import user_bases_dir
+from .common import frame_range, load_basis, select_only, settings, sorted_meshes, template_object
+
+
+class BAREESA_OT_load_template(bpy.types.Operator):
+    """Add the template of a basis with one shape key per basis field"""
+
+    bl_idname = "bareesa.load_template"
+    bl_label = "Load Template"
+    bl_options = {"REGISTER", "UNDO"}
+
+    basis: StringProperty(name="Basis", default="", description="Bundled name or .npz path (empty: the panel's)")
+
+    def execute(self, context):
+        try:
+            basis, ref = load_basis(self.basis or settings(context).basis)
+            obj = template_object(context, basis, ref, f"{basis.name}_template")
+        except Exception as err:
+            if not is_user_error(err):
+                raise
+            self.report({"ERROR"}, str(err))
+            return {"CANCELLED"}
+        select_only(context, [obj])
+        self.report({"INFO"}, f"added '{obj.name}': {basis.n_fields} shape keys "
+                              f"({', '.join(f'{g} {b - a}' for g, (a, b) in basis.groups.items())})")
+        return {"FINISHED"}
+
+
+def source_meshes(context, s):
+    """The same-topology meshes a basis is built from: the panel's collection (one per object) or
+    animated mesh (one per frame of the range): -> (list of (verts, faces), what they are)."""
+    source = s.build_source or (None if s.build_collection else context.view_layer.objects.active)
+    if s.build_collection is None and source is None:
+        raise cv.ConversionError("choose an animated mesh or a collection of same-topology meshes")
+    depsgraph = context.evaluated_depsgraph_get
+    if s.build_collection is not None:
+        meshes = [cv.evaluated_mesh(o, depsgraph()) for o in sorted_meshes(s.build_collection)]
+        return meshes, f"collection '{s.build_collection.name}'"
+    cv.require_mesh(source, "animated mesh")
+    scene, current, meshes = context.scene, context.scene.frame_current, []
+    try:
+        for f in frame_range(context):
+            scene.frame_set(int(f))
+            meshes.append(cv.evaluated_mesh(source, depsgraph()))
+    finally:
+        scene.frame_set(current)
+    return meshes, f"'{source.name}' frames {s.frame_start}-{s.frame_end}"
+
+
+class BAREESA_OT_build_basis(SolveOperator, bpy.types.Operator):
+    """Build a basis from an animated mesh's frames or a collection of same-topology meshes, save and load it"""
+
+    bl_idname = "bareesa.build_basis"
+    bl_label = "Build Basis"
+
+    filepath: StringProperty(name="File", subtype="FILE_PATH", default="",
+                             description="Where to save the .npz (empty: <name>.npz in the user's bases directory)")
+
+    def prepare(self, context):
+        s = settings(context)
+        name = s.build_name.strip()
+        if not name or not name.replace("_", "").replace("-", "").isalnum():
+            raise cv.ConversionError(f"basis name '{name}' must be letters, digits, '_' or '-'")
+        group = s.build_group.strip() or "pose"
+        meshes, what = source_meshes(context, s)
+        if len(meshes) < 2:
+            raise cv.ConversionError(f"{what} gives {len(meshes)} meshes: a basis needs at least two frames")
+        faces = meshes[0][1]
+        for v, f in meshes[1:]:
+            if v.shape != meshes[0][0].shape or not np.array_equal(f, faces):
+                raise cv.ConversionError(f"{what}: the frames do not share one topology (vertex count or faces "
+                                         "differ); register them first")
+        frames = np.stack([v for v, _ in meshes])
+        path = Path(bpy.path.abspath(self.filepath)) if self.filepath else user_bases_dir(create=True) / f"{name}.npz"
+        building, basis_io = solver.module("basis_building"), solver.module("basis_io")
+        weights = {"BASIS": "body", "CUSTOM": s.metric_custom}.get(s.metric, s.metric.lower())
+        solver.module("h2_metric").H2Weights.parse(weights)  # a bad custom metric is reported now
+        k = s.build_components
+
+        def solve(callback, cancel):
+            basis = building.build_basis(frames[0], faces, {group: [frames]}, {group: k}, weights=weights, name=name,
+                                         provenance={"source": what, "tool": "BaRe-ESA for Blender"},
+                                         callback=callback, cancel=cancel)
+            if group == "pose":  # starting poses for registration (bareesa.registration, pose candidates)
+                basis.extras["pose_prototypes"] = solver.module("statistics").pose_prototypes(basis, frames)
+            basis_io.save_basis(path, basis)
+            return basis
+
+        def apply(context, basis):
+            s = settings(context)
+            s.basis = str(path)
+            obj = template_object(context, basis, str(path.resolve()), f"{basis.name}_template")
+            select_only(context, [obj])
+            return f"basis '{basis.name}' ({basis.n_fields} fields) saved to {path} and loaded"
+
+        return Task("build basis", solve, apply)

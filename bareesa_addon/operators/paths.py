@@ -1,0 +1,197 @@
+"""Interpolate, Extrapolate and (Geodesic) Distance."""
+
+import csv
+from pathlib import Path
+
+import bpy
+import numpy as np
+from bpy.props import BoolProperty, EnumProperty, StringProperty
+
+from .. import convert as cv
+from .. import solver
+from ..jobs import SolveOperator, Task
+from .common import (add_registered, check_codes, common_basis, find_object, frame_range, is_registered,
+                     new_collection, object_basis, object_input, pick_pair, registered_code, select_only, settings,
+                     solve_options, sorted_meshes, template_object, workflows, write_keys)
+
+
+class BAREESA_OT_interpolate(SolveOperator, bpy.types.Operator):
+    """Geodesic between two registered objects (or scans) keyframed on every frame, evenly paced"""
+
+    bl_idname = "bareesa.interpolate"
+    bl_label = "Interpolate"
+
+    object_a: StringProperty(name="From", default="")
+    object_b: StringProperty(name="To", default="")
+    anchor: BoolProperty(name="Keep Body Planted", default=True,
+                         description="Keep the body's unmoving part where the straight line between the ends puts it "
+                                     "(the metric's L2 term otherwise lets the body sink ~1 cm when a limb moves)")
+
+    def prepare(self, context):
+        a, b = pick_pair(context, self.object_a, self.object_b)
+        basis, ref = common_basis(context, (a, b))
+        inputs = [object_input(context, o, basis) for o in (a, b)]
+        frames = frame_range(context)
+        options, anchor = solve_options(context, basis), self.anchor
+        make_meshes = settings(context).make_collection
+        names_ab = (a.name, b.name)
+        wf = workflows()
+
+        def solve(callback, cancel):
+            return wf.path_between(basis, *inputs, len(frames), options, anchor=anchor, callback=callback,
+                                   cancel=cancel)
+
+        def apply(context, found):
+            check_codes(found.ends)
+            path = found.frames
+            cv.check_code(path, "the geodesic")
+            a_obj, b_obj = (find_object(n) for n in names_ab)
+            made = []
+            ends = []
+            for obj, end in zip((a_obj, b_obj), found.ends):
+                if end.registration is not None:
+                    made.append(add_registered(context, basis, ref, obj, end.registration))
+                    ends.append(made[-1].matrix_world.copy())
+                else:
+                    ends.append(obj.matrix_world.copy())
+            name = f"{a_obj.name}_to_{b_obj.name}"
+            obj = template_object(context, basis, ref, name, code=path[0], hint=path)
+            write_keys(obj, basis, frames, path)
+            ts = np.linspace(0.0, 1.0, len(frames))
+            matrices = [cv.blend_matrices(ends[0], ends[1], t) for t in ts]
+            cv.keyframe_transforms(obj, frames, matrices)
+            settings(context).distance = found.distance
+            settings(context).distance_pair = f"{a_obj.name} - {b_obj.name}"
+            if make_meshes:
+                coll = new_collection(context, f"{name}_frames")
+                verts = basis.template + np.tensordot(path, basis.fields, axes=1)
+                for f, v, m in zip(frames, verts, matrices):
+                    frame_obj = cv.new_mesh_object(f"{name}_{int(f):04d}", v, basis.faces, coll)
+                    frame_obj.matrix_world = m
+            select_only(context, made + [obj])
+            return (f"'{name}': geodesic keyframed on frames {frames[0]}-{frames[-1]}, "
+                    f"distance {found.distance:.4g}")
+
+        return Task("interpolate", solve, apply)
+
+
+class BAREESA_OT_extrapolate(SolveOperator, bpy.types.Operator):
+    """Continue a motion along the geodesic: from two objects (other -> active) or the last two keyframes"""
+
+    bl_idname = "bareesa.extrapolate"
+    bl_label = "Extrapolate"
+
+    source: EnumProperty(name="Direction from", items=(
+        ("AUTO", "Auto", "Two objects when two are chosen or selected, else the active object's keyframes"),
+        ("OBJECTS", "Two objects", "From the start object to the end object"),
+        ("KEYFRAMES", "Keyframes", "The last two shape-key keyframes of the active registered object")),
+        default="AUTO")
+    object_a: StringProperty(name="From", default="")
+    object_b: StringProperty(name="To", default="")
+    anchor: BoolProperty(name="Keep Body Planted", default=True,
+                         description="Keep the body's unmoving part where the straight latent line puts it")
+
+    def prepare(self, context):
+        s = settings(context)
+        mode = self.source
+        if mode == "AUTO":
+            two = (self.object_a and self.object_b) or (s.object_a and s.object_b) or len(
+                context.selected_objects) == 2
+            mode = "OBJECTS" if two else "KEYFRAMES"
+        if mode == "OBJECTS":
+            a, b = pick_pair(context, self.object_a, self.object_b)
+            for o in (a, b):
+                if not is_registered(o):
+                    raise cv.ConversionError(f"'{o.name}' is not registered: register it first")
+            basis, ref = common_basis(context, (a, b))
+            names = solver.field_names(basis)
+            alpha0, alpha1 = registered_code(a, basis, names), registered_code(b, basis, names)
+            target_name = None
+            frames = s.frame_start + s.extrapolate_spacing * np.arange(s.extrapolate_steps + 2)
+            label = f"{a.name}_{b.name}_extrapolated"
+        else:
+            obj = bpy.data.objects.get(self.object_b) if self.object_b else context.view_layer.objects.active
+            if not is_registered(obj):
+                raise cv.ConversionError("select a registered object with at least two shape-key keyframes "
+                                         "(or choose two registered objects)")
+            basis, ref = object_basis(obj)
+            names = solver.field_names(basis)
+            registered_code(obj, basis, names)
+            keyed = cv.keyed_frames(obj, names)
+            if len(keyed) < 2:
+                raise cv.ConversionError(f"'{obj.name}' has {len(keyed)} shape-key keyframes: need two to "
+                                         "give a direction")
+            f0, f1 = keyed[-2], keyed[-1]
+            alpha0, alpha1 = cv.code_at_frame(obj, names, f0), cv.code_at_frame(obj, names, f1)
+            target_name = obj.name
+            frames = f1 + (f1 - f0) * np.arange(-1, s.extrapolate_steps + 1)
+            label = obj.name
+        options, n_new, anchor = solve_options(context, basis), s.extrapolate_steps, self.anchor
+        wf = workflows()
+        ends = (wf.KnownCode(alpha0), wf.KnownCode(alpha1))
+
+        def solve(callback, cancel):
+            return wf.extrapolate(basis, *ends, n_new, options, anchor=anchor, callback=callback, cancel=cancel).path
+
+        def apply(context, path):
+            cv.check_code(path, "the extrapolated motion")
+            if target_name is None:
+                obj = template_object(context, basis, ref, label, code=path[0], hint=path)
+                write_keys(obj, basis, frames, path)
+                select_only(context, [obj])
+            else:
+                obj = find_object(target_name)
+                write_keys(obj, basis, frames[2:], path[2:], replace=False)
+            return f"'{obj.name}': {n_new} extrapolated keyframes up to frame {int(frames[-1])}"
+
+        return Task("extrapolate", solve, apply)
+
+
+class BAREESA_OT_distance(SolveOperator, bpy.types.Operator):
+    """Geodesic distance between two objects, or a distance matrix of a collection written to CSV"""
+
+    bl_idname = "bareesa.distance"
+    bl_label = "Geodesic Distance"
+
+    collection: StringProperty(name="Collection", default="", description="Pairwise distances of its objects")
+    filepath: StringProperty(name="CSV", subtype="FILE_PATH", default="")
+    object_a: StringProperty(name="From", default="")
+    object_b: StringProperty(name="To", default="")
+
+    def prepare(self, context):
+        s = settings(context)
+        coll = bpy.data.collections.get(self.collection) if self.collection else s.distance_collection
+        if self.collection and coll is None:
+            raise cv.ConversionError(f"no collection named '{self.collection}'")
+        if coll is not None:
+            objects = sorted_meshes(coll)
+            if len(objects) < 2:
+                raise cv.ConversionError(f"collection '{coll.name}' holds {len(objects)} meshes: need two or more")
+            csv_path = Path(bpy.path.abspath(self.filepath or s.distance_csv))
+        else:
+            objects, csv_path = list(pick_pair(context, self.object_a, self.object_b)), None
+        basis, _ = common_basis(context, objects)
+        inputs = [object_input(context, o, basis) for o in objects]
+        options = solve_options(context, basis)
+        labels = [o.name for o in objects]
+        wf = workflows()
+
+        def solve(callback, cancel):
+            return wf.distances(basis, inputs, options, callback, cancel)
+
+        def apply(context, d):
+            if not np.isfinite(d).all():
+                raise cv.ConversionError("a distance is not finite (the solve diverged); nothing was written")
+            s = settings(context)
+            if csv_path is None:
+                s.distance, s.distance_pair = float(d[0, 1]), f"{labels[0]} - {labels[1]}"
+                return f"geodesic distance {labels[0]} - {labels[1]}: {d[0, 1]:.6g}"
+            csv_path.parent.mkdir(parents=True, exist_ok=True)
+            with open(csv_path, "w", newline="") as fh:
+                writer = csv.writer(fh)
+                writer.writerow([""] + labels)
+                for label, row in zip(labels, d):
+                    writer.writerow([label] + [f"{x:.9g}" for x in row])
+            return f"{len(labels)}x{len(labels)} distance matrix written to {csv_path}"
+
+        return Task("distance", solve, apply)

@@ -1,0 +1,43 @@
+"""Register Scans."""
+
+import bpy
+from bpy.props import StringProperty
+
+from .. import convert as cv
+from ..jobs import SolveOperator, Task
+from .common import (add_registered, check_codes, find_object, load_basis, select_only, settings, solve_options,
+                     workflows)
+
+
+class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
+    """Register each selected scan (any mesh): a new object in template topology whose shape keys are its code"""
+
+    bl_idname = "bareesa.register_scan"
+    bl_label = "Register Scans"
+
+    basis: StringProperty(name="Basis", default="", description="Bundled name or .npz path (empty: the panel's)")
+
+    def prepare(self, context):
+        scans = list(context.selected_objects)
+        if not scans:
+            raise cv.ConversionError("select one or more scan meshes to register")
+        for o in scans:
+            cv.require_mesh(o, "selected object")
+        basis, ref = load_basis(self.basis or settings(context).basis)
+        wf, depsgraph = workflows(), context.evaluated_depsgraph_get()
+        inputs = [wf.Scan(*cv.evaluated_mesh(o, depsgraph)) for o in scans]
+        names = [o.name for o in scans]
+        options = solve_options(context, basis)
+
+        def solve(callback, cancel):
+            return wf.codes_of(basis, inputs, options, callback, cancel)
+
+        def apply(context, codes):
+            check_codes(codes)
+            scan_objects = [find_object(n) for n in names]
+            made = [add_registered(context, basis, ref, scan, c.registration) for scan, c in zip(scan_objects, codes)]
+            select_only(context, made)
+            return "; ".join(f"{o.name}: varifold {c.registration.varifold:.3g}, Chamfer {c.registration.chamfer:.3g}"
+                             for o, c in zip(made, codes))
+
+        return Task(f"register {len(scans)} scan{'s' * (len(scans) > 1)}", solve, apply)

@@ -1,0 +1,95 @@
+"""How accurately must a geodesic step be solved, and how far may a step change the speed?
+
+Random bodies of a bundled basis (its stored distribution, shot from the template as ``sample``
+does) are shot with every step solved only to a tolerance tol (the remaining quasi-Newton
+correction relative to the step length, metric norm) and compared with a reference solved to
+1e-9: the largest vertex deviation over the shot frames, in the basis' units and relative to its
+size. This chooses ``shooting.ACCEPT_TOL``: a step whose iteration stalls is accepted when its
+correction is below it. The same shots at 2 and 4 substeps per frame give the time-discretisation
+error next to it, and the largest change of metric speed between consecutive steps
+(``ShootingReport.max_speed_change``) at each resolution, which chooses ``shooting.SPEED_TOL``.
+
+    python -m bench.shooting_tolerance [--basis humanoid] [--seeds 8] [--steps 8] [--threads 2]
+"""
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+from bench.common import markdown_table, report
+from bareesa import basis_io, shooting, statistics
+from bareesa.geodesics import decode_path
+
+TOLERANCES = (1e-2, 1e-3, 1e-4, 1e-6)
+
+
+def shot(basis, velocity, steps, tol, substeps=1):
+    """Frames (steps + 1, N, 3) of the geodesic from the template, every step solved to ``tol`` at a fixed
+    time resolution (no refinement), and its report."""
+    t, f, h = basis.tensors()
+    alpha1 = velocity / steps
+    path, rep = shooting.extrapolate(t, f, h, np.zeros_like(velocity), alpha1, basis.weights, steps - 1, tol=tol,
+                                     accept_tol=max(tol, 1e-6), substeps=substeps, max_substeps=substeps,
+                                     speed_tol=np.inf, with_report=True)
+    return decode_path(t, h, path), rep
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--basis", default="humanoid")
+    parser.add_argument("--seeds", type=int, default=8)
+    parser.add_argument("--steps", type=int, default=8)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    basis = basis_io.load_basis(args.basis)
+    size = float((basis.template.max(0) - basis.template.min(0)).max())
+    dist = {k: v for k, v in basis.extras.items() if k.startswith("gmm_")}
+    rows_tol, rows_time = {tol: [] for tol in TOLERANCES}, {k: [] for k in (2, 4)}
+    speed = {k: [] for k in (1, 2, 4)}
+    failed = []
+    for seed in range(args.seeds):
+        v = statistics.sample_velocities(dist, basis.groups, 1, seed)[0]
+        t0 = time.perf_counter()
+        try:
+            ref, rep = shot(basis, v, args.steps, 1e-9)
+        except shooting.ShootingFailed as err:
+            failed.append(f"seed {seed}: {err}")
+            print(f"seed {seed}: reference failed: {err}", flush=True)
+            continue
+        speed[1].append(rep.max_speed_change)
+        for tol in TOLERANCES:
+            try:
+                frames, _ = shot(basis, v, args.steps, tol)
+                rows_tol[tol].append(np.abs(frames - ref).max())
+            except shooting.ShootingFailed as err:
+                failed.append(f"seed {seed}, tol {tol:g}: {err}")
+        for k in (2, 4):
+            try:
+                frames, rep_k = shot(basis, v, args.steps, 1e-9, substeps=k)
+                rows_time[k].append(np.abs(frames - ref).max())
+                speed[k].append(rep_k.max_speed_change)
+            except shooting.ShootingFailed as err:
+                failed.append(f"seed {seed}, {k} substeps: {err}")
+        print(f"seed {seed}: done in {time.perf_counter() - t0:.0f} s; largest speed change {rep.max_speed_change:.3g}",
+              flush=True)
+    unit = basis.units or "units"
+    table = [[f"solved to {tol:g}", len(d), float(np.max(d)) if d else float("nan"),
+              float(np.max(d)) / size if d else float("nan")] for tol, d in rows_tol.items()]
+    table += [[f"{k} substeps per frame (time discretisation)", len(d), float(np.max(d)) if d else float("nan"),
+               float(np.max(d)) / size if d else float("nan")] for k, d in rows_time.items()]
+    text = (f"# Shooting tolerance: basis '{basis.name}', {args.seeds} random bodies, {args.steps} steps\n\n"
+            f"Largest vertex deviation from the reference (every step solved to 1e-9, 1 step per frame):\n\n"
+            + markdown_table(["shots", "n", f"max deviation ({unit})", "relative to size"], table, "{:.3g}")
+            + "\n\nLargest change of metric speed between consecutive steps (accepted shots):\n\n"
+            + markdown_table(["steps per frame", "n", "median", "max"],
+                             [[k, len(s), float(np.median(s)) if s else float("nan"),
+                               float(np.max(s)) if s else float("nan")] for k, s in speed.items()], "{:.3g}")
+            + ("\n\nFailures:\n" + "\n".join(f"- {x}" for x in failed) if failed else "\n\nNo failures."))
+    report("shooting_tolerance", text)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,350 @@
+"""The steps both front ends take (the CLI and the Blender add-on): typed inputs -> codes -> paths.
+
+An input is a ``Scan`` (any topology: registered), a ``TemplateMesh`` (the basis' template
+topology: projected, keeping what the basis misses as off-basis detail) or a ``KnownCode``.
+The workflows (``code_of``, ``geodesic_between``, ``path_between``, ``extrapolate``,
+``random_bodies``, ``transfer``, ``distances``) take a basis, inputs and ``Options`` (metric
+weights, registration schedule, geodesic time points, device, dtype: nothing global) and
+return small result dataclasses of numpy arrays. Progress goes to a ``bareesa.progress``
+callback, cancellation through a ``CancelToken``. Solvers are called through their modules
+at call time (``shooting.shoot``, ``geodesics.keyframe_path``), so tests can replace them.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from . import evaluation, geodesics, latent, registration, shooting, statistics
+from .errors import InputError
+from .h2_metric import H2Weights
+from .progress import Monitor
+
+# ------------------------------------------------------------------------------------ inputs
+
+
+@dataclass(frozen=True, eq=False)
+class Scan:
+    """A raw scan in any topology: verts (M, 3), faces (G, 3); optional face weights (G,) >= 0 and
+    landmarks [(template vertex, (x, y, z)[, weight])], as ``registration.register`` takes them."""
+
+    verts: np.ndarray
+    faces: np.ndarray
+    face_weights: np.ndarray | None = None
+    landmarks: list | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class TemplateMesh:
+    """A mesh in the basis' template topology: verts (N, 3); its code is a projection."""
+
+    verts: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class KnownCode:
+    """A latent code known already (e.g. read from shape keys): code (P,)."""
+
+    code: np.ndarray
+
+
+def mesh_input(basis, verts, faces):
+    """A mesh as the input it is: a TemplateMesh in the basis' template topology, else a Scan."""
+    verts, faces = np.asarray(verts), np.asarray(faces)
+    if verts.shape == basis.template.shape and np.array_equal(faces, basis.faces):
+        return TemplateMesh(verts)
+    return Scan(verts, faces)
+
+
+@dataclass(frozen=True)
+class Options:
+    """How the workflows solve: H2 weights (None: the basis'), registration schedule (None: the
+    basis') and pre-alignment, geodesic time points and L-BFGS cap, torch device and dtype."""
+
+    weights: H2Weights | str | None = None
+    schedule: tuple | None = None
+    prealign: bool = True
+    steps: int = 10
+    max_iter: int = 500
+    device: str = "cpu"
+    dtype: torch.dtype = torch.float64
+
+    def metric(self, basis):
+        """The H2 weights to solve with."""
+        return basis.weights if self.weights is None else H2Weights.parse(self.weights)
+
+    def tensors(self, basis):
+        """The basis' (template (N, 3), faces (F, 3), fields (P, N, 3)) on this device and dtype."""
+        return basis.tensors(dtype=self.dtype, device=self.device)
+
+
+# ------------------------------------------------------------------------------------ codes
+
+
+@dataclass
+class MatchedEnd:
+    """One end of a symmetric matching, as a registration gives it: code (P,), transform (scan ->
+    template frame), vertices (N, 3) in the scan's frame, varifold residual, Chamfer to the scan."""
+
+    code: np.ndarray
+    transform: object
+    vertices: np.ndarray
+    varifold: float
+    chamfer: float
+
+
+@dataclass
+class Code:
+    """The code (P,) of one input; detail (N, 3) the off-basis detail of a TemplateMesh (else None);
+    registration the RegistrationResult of a Scan, or the MatchedEnd of a matched one (else None)."""
+
+    code: np.ndarray
+    detail: np.ndarray | None = None
+    registration: object = None
+
+
+def code_of(basis, item, options=Options(), callback=None, cancel=None):
+    """The code of one input: a KnownCode as is, a TemplateMesh projected, a Scan registered: -> Code."""
+    if isinstance(item, KnownCode):
+        return Code(np.asarray(item.code, dtype=np.float64))
+    if isinstance(item, TemplateMesh):
+        code = latent.project_to_basis(basis, item.verts)[0]
+        return Code(code, detail=latent.off_basis_detail(basis, item.verts, code))
+    if isinstance(item, Scan):
+        res = registration.register(basis, item.verts, item.faces, schedule=options.schedule,
+                                    prealign=options.prealign, landmarks=item.landmarks,
+                                    scan_face_weights=item.face_weights, metric=options.weights,
+                                    callback=callback, cancel=cancel, dtype=options.dtype, device=options.device)
+        return Code(res.code, registration=res)
+    raise InputError(f"an input is a Scan, a TemplateMesh or a KnownCode, got {type(item).__name__}")
+
+
+def codes_of(basis, items, options=Options(), callback=None, cancel=None):
+    """Codes of several inputs, the progress bar shared by the scans among them: -> list of Code."""
+    monitor = Monitor("codes", callback, cancel)
+    scans = [i for i, item in enumerate(items) if isinstance(item, Scan)]
+    out = []
+    for i, item in enumerate(items):
+        sub = None
+        if i in scans:
+            k = scans.index(i)
+            sub = monitor.scaled(k / len(scans), (k + 1) / len(scans))
+        out.append(code_of(basis, item, options, sub, cancel))
+    return out
+
+
+def _scan_share(items, share=0.5):
+    """Share of a progress bar given to registering the inputs: share if any is a Scan, else 0."""
+    return share if any(isinstance(item, Scan) for item in items) else 0.0
+
+
+def matched_ends(basis, matching, scans):
+    """Both ends of a symmetric matching of two Scans: -> (MatchedEnd, MatchedEnd)."""
+    ends = []
+    for k, scan in enumerate(scans):
+        code = matching.path[0 if k == 0 else -1]
+        verts = matching.transforms[k].invert(basis.template + np.tensordot(code, basis.fields, axes=1))
+        ends.append(MatchedEnd(code=code, transform=matching.transforms[k], vertices=verts,
+                               varifold=matching.varifold[k], chamfer=evaluation.chamfer(verts, scan.verts)))
+    return tuple(ends)
+
+
+# ------------------------------------------------------------------------------------ paths
+
+
+@dataclass
+class LatentPath:
+    """A geodesic between two inputs: ends (Code, Code); path (T, P) as solved; distance; frames
+    (n_frames, P) evenly paced keyframes and detail (n_frames, N, 3) the inputs' off-basis detail
+    along them (None when not asked for / not both inputs have detail); matching when both were scans."""
+
+    ends: tuple
+    path: np.ndarray
+    distance: float
+    frames: np.ndarray | None = None
+    detail: np.ndarray | None = None
+    matching: object = None
+
+
+def _detail_along(ends, times, keep_detail):
+    """Off-basis detail of two ends along times (T,): -> (T, N, 3), or None without detail at both ends."""
+    if not keep_detail or ends[0].detail is None or ends[1].detail is None:
+        return None
+    return latent.detail_along(ends[0].detail, ends[1].detail, times)
+
+
+def geodesic_between(basis, a, b, options=Options(), callback=None, cancel=None):
+    """The geodesic between two inputs: two Scans by symmetric matching (codes and path in one solve),
+    otherwise their codes, then the boundary value problem preconditioned at the template: -> LatentPath."""
+    monitor = Monitor("geodesic", callback, cancel)
+    weights = options.metric(basis)
+    if isinstance(a, Scan) and isinstance(b, Scan):
+        m = registration.symmetric_match(basis, (a.verts, a.faces), (b.verts, b.faces), steps=options.steps,
+                                         schedule=options.schedule, weights=weights, prealign=options.prealign,
+                                         callback=callback, cancel=cancel, dtype=options.dtype,
+                                         device=options.device)
+        ends = tuple(Code(e.code, registration=e) for e in matched_ends(basis, m, (a, b)))
+        return LatentPath(ends=ends, path=m.path, distance=m.distance, matching=m)
+    lo = _scan_share((a, b))
+    ends = tuple(codes_of(basis, [a, b], options, monitor.scaled(0.0, lo), cancel))
+    template, faces, fields = options.tensors(basis)
+    g = geodesics.geodesic(template, faces, fields, ends[0].code, ends[1].code, weights, steps=options.steps,
+                           max_iter=options.max_iter, metric=basis.template_metric(weights),
+                           callback=monitor.scaled(lo, 1.0), cancel=cancel)
+    return LatentPath(ends=ends, path=g.path, distance=g.distance)
+
+
+def path_between(basis, a, b, n_frames, options=Options(), anchor=True, keep_detail=True, callback=None,
+                 cancel=None):
+    """n_frames evenly paced keyframes between two inputs: ``geodesic_between``, then
+    ``geodesics.keyframe_path`` (anchored unless anchor is False); the inputs' off-basis detail is
+    carried along when both have some (unless keep_detail is False): -> LatentPath with frames."""
+    monitor = Monitor("path", callback, cancel)
+    found = geodesic_between(basis, a, b, options, monitor.scaled(0.0, 0.95), cancel)
+    template, faces, fields = options.tensors(basis)
+    found.frames = geodesics.keyframe_path(template, faces, fields, found.path, options.metric(basis), n_frames,
+                                           anchor=anchor)
+    found.detail = _detail_along(found.ends, np.linspace(0.0, 1.0, len(found.frames)), keep_detail)
+    monitor.report(1.0, "path done")
+    return found
+
+
+@dataclass
+class Continuation:
+    """A motion continued along the geodesic: ends (Code, Code) of the inputs; path (n_new + 2, P),
+    frames 0 and 1 the inputs; detail (n_new + 2, N, 3) their off-basis detail continued linearly, or None;
+    shooting the ``shooting.ShootingReport`` (where time was refined)."""
+
+    ends: tuple
+    path: np.ndarray
+    detail: np.ndarray | None = None
+    shooting: object = None
+
+
+def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=True, callback=None, cancel=None):
+    """Continue the motion a -> b by n_new geodesic steps (``shooting.extrapolate``, anchored unless
+    anchor is False), with the off-basis detail continued as the latent line is: -> Continuation."""
+    monitor = Monitor("extrapolate", callback, cancel)
+    lo = _scan_share((a, b))
+    ends = tuple(codes_of(basis, [a, b], options, monitor.scaled(0.0, lo), cancel))
+    template, faces, fields = options.tensors(basis)
+    path, report = shooting.extrapolate(template, faces, fields, ends[0].code, ends[1].code, options.metric(basis),
+                                        n_new, callback=monitor.scaled(lo, 1.0), cancel=cancel, anchor=anchor,
+                                        with_report=True)
+    return Continuation(ends=ends, path=path, detail=_detail_along(ends, np.arange(len(path)), keep_detail),
+                        shooting=report)
+
+
+def distances(basis, items, options=Options(), callback=None, cancel=None):
+    """Geodesic distance between every two inputs (their codes, then one geodesic per pair):
+    -> (n, n) symmetric, zero diagonal."""
+    monitor = Monitor("distances", callback, cancel)
+    lo = _scan_share(items)
+    codes = [c.code for c in codes_of(basis, items, options, monitor.scaled(0.0, lo), cancel)]
+    template, faces, fields = options.tensors(basis)
+    weights = options.metric(basis)
+    n = len(codes)
+    pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    d = np.zeros((n, n))
+    for k, (i, j) in enumerate(pairs):
+        sub = monitor.scaled(lo + (1 - lo) * k / len(pairs), lo + (1 - lo) * (k + 1) / len(pairs))
+        d[i, j] = d[j, i] = geodesics.geodesic(template, faces, fields, codes[i], codes[j], weights,
+                                               steps=options.steps, max_iter=options.max_iter,
+                                               metric=basis.template_metric(weights), callback=sub,
+                                               cancel=cancel).distance
+    return d
+
+
+# ------------------------------------------------------------------------------------ statistics
+
+
+@dataclass
+class Transfer:
+    """Motion on another identity: motion (T, P); identity the Code of the identity input
+    (with its registration when it was a scan)."""
+
+    motion: np.ndarray
+    identity: Code
+
+
+def transfer(basis, frames, identity, group, options=Options(), callback=None, cancel=None):
+    """The motion of the frame inputs with the identity group's coefficients of ``identity``
+    (``statistics.transfer_motion``): -> Transfer."""
+    identity_slice = basis.group_slice(group)
+    codes = codes_of(basis, [*frames, identity], options, callback, cancel)
+    motion = statistics.transfer_motion(np.stack([c.code for c in codes[:-1]]), codes[-1].code, identity_slice)
+    return Transfer(motion=motion, identity=codes[-1])
+
+
+#: A random body whose geodesic cannot be shot is retried with twice the steps, then replaced by a
+#: further draw; at most this many draws per requested body.
+DRAWS_PER_BODY = 4
+
+
+def stored_distribution(basis):
+    """The Gaussian mixture a basis stores (its ``gmm_*`` extras): -> dict, empty when it has none."""
+    return {k: v for k, v in basis.extras.items() if k.startswith("gmm_")}
+
+
+def sample_bodies(template, faces, fields, distribution, groups, weights, n, seed, steps, callback=None,
+                  cancel=None):
+    """n random codes: initial velocities drawn from ``distribution``, shot from the template.
+
+    Like ``statistics.sample_codes`` (the same first n draws for a seed), except that a
+    draw whose geodesic does not converge is shot again with 2 x steps and, failing that,
+    replaced by a draw from a second stream of the same seed. -> (codes (n, P), replaced draws).
+    """
+    monitor = Monitor("sample", callback, cancel)
+    velocities = list(statistics.sample_velocities(distribution, groups, n, seed))
+    spares = iter(statistics.sample_velocities(distribution, groups, (DRAWS_PER_BODY - 1) * n, [seed, 1]))
+    codes, replaced, error = [], 0, None
+    while len(codes) < n:
+        v = velocities.pop(0) if velocities else next(spares, None)
+        if v is None:
+            raise shooting.ShootingFailed(f"only {len(codes)} of {n} random bodies could be shot from the basis' "
+                                          f"distribution ({error}); use more shooting steps or fit the "
+                                          "distribution to shapes of your own")
+        for k in (steps, 2 * steps):
+            monitor.report(len(codes) / n, f"body {len(codes) + 1}/{n}" + (f" ({k} steps)" if k > steps else ""))
+            try:
+                codes.append(shooting.shoot(template, faces, fields, np.zeros_like(v), v, weights, steps=k,
+                                            cancel=cancel)[-1])
+                break
+            except shooting.ShootingFailed as err:
+                error = err
+        else:
+            replaced += 1
+    return np.stack(codes), replaced
+
+
+@dataclass
+class RandomBodies:
+    """Random codes (n, P) and how many draws could not be shot and were replaced by further draws."""
+
+    codes: np.ndarray
+    replaced: int = 0
+
+
+def random_bodies(basis, n, seed, options=Options(), fit=None, components=1, shoot_steps=8, callback=None,
+                  cancel=None):
+    """n seeded random bodies (``sample_bodies``: retried, replaced draws counted) from the basis'
+    stored distribution, or from a mixture of ``components`` per group fitted to the initial
+    velocities (``statistics.log_map``) of the codes of the inputs ``fit``: -> RandomBodies."""
+    monitor = Monitor("random bodies", callback, cancel)
+    template, faces, fields = options.tensors(basis)
+    weights = options.metric(basis)
+    if fit is None:
+        distribution, lo = stored_distribution(basis), 0.0
+        if not distribution:
+            raise InputError(f"basis '{basis.name}' stores no distribution: fit one to two or more shapes")
+    else:
+        mid = _scan_share(fit, 0.25)
+        codes = np.stack([c.code for c in codes_of(basis, fit, options, monitor.scaled(0.0, mid), cancel)])
+        velocities = statistics.log_map(template, faces, fields, codes, weights, callback=monitor.scaled(mid, 0.5),
+                                        cancel=cancel)
+        distribution = statistics.fit_distribution(velocities, basis.groups, {g: components for g in basis.groups},
+                                                   seed=seed)
+        lo = 0.5
+    codes, replaced = sample_bodies(template, faces, fields, distribution, basis.groups, weights, n, seed,
+                                    shoot_steps, monitor.scaled(lo, 1.0), cancel)
+    return RandomBodies(codes=codes, replaced=replaced)

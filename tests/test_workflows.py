@@ -1,0 +1,177 @@
+"""bareesa.workflows: what the CLI and the add-on both run (metric and preconditioning reach the
+solvers, replaced random draws are reported, one path for the same inputs from either front end)."""
+
+import json
+import re
+
+import numpy as np
+import pytest
+
+from bareesa import cli, geodesics, registration, shooting, synthetic, workflows
+from bareesa.basis_io import save_basis
+from bareesa.errors import InputError
+from bareesa.h2_metric import PRESETS
+from bareesa.mesh import save_mesh
+from bareesa.statistics import fit_distribution
+from bareesa.transforms import Similarity
+
+A = np.array([0.2, -0.3, 0.4, 0.1])
+B = np.array([-0.5, 0.6, 0.1, 0.7])
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    """A 4-field smooth sphere basis with a fitted distribution, and its surface map."""
+    basis, surface = synthetic.smooth_sphere_basis(subdivisions=1, n_fields=4, seed=0)
+    rng = np.random.default_rng(0)
+    basis.extras.update(fit_distribution(0.5 * rng.normal(size=(12, 4)), basis.groups,
+                                         {g: 1 for g in basis.groups}, seed=0))
+    return basis, surface
+
+
+def raw_scan(surface, code, seed):
+    """F(code) on another triangulation of the sphere: a workflows.Scan."""
+    u, faces = synthetic.resampled_sphere(1, seed=seed)
+    return workflows.Scan(surface(u, np.asarray(code, dtype=np.float64)), faces)
+
+
+def test_symmetric_matching_of_two_scans_solves_with_the_given_metric_steps_and_schedule(sphere, monkeypatch):
+    basis, surface = sphere
+    seen = {}
+
+    def fake(b, scan0, scan1, steps=10, schedule=None, weights=None, prealign=True, callback=None, cancel=None,
+             dtype=None, device="cpu"):
+        seen.update(weights=weights, steps=steps, schedule=schedule, device=device)
+        path = geodesics.straight_path(A, B, steps)
+        return registration.Matching(path=path, energy=1.0, distance=1.0, transforms=(Similarity(), Similarity()),
+                                     varifold=(0.0, 0.0), seconds=0.0)
+
+    monkeypatch.setattr(registration, "symmetric_match", fake)
+    schedule = basis.schedule[:1]
+    options = workflows.Options(weights="body", schedule=schedule, steps=5, device="meta")
+    found = workflows.path_between(basis, raw_scan(surface, A, 4), raw_scan(surface, B, 6), 4,
+                                   workflows.Options(weights="body", schedule=schedule, steps=5))
+    assert seen == {"weights": PRESETS["body"], "steps": 5, "schedule": schedule, "device": "cpu"}
+    workflows.geodesic_between(basis, raw_scan(surface, A, 4), raw_scan(surface, B, 6), options)
+    assert seen["device"] == "meta"  # the caller's device reaches the matching
+    assert basis.weights == PRESETS["face"]  # the caller's basis keeps its own metric
+    assert found.frames.shape == (4, 4) and found.matching is not None
+    for end, code in zip(found.ends, (A, B)):
+        reg = end.registration
+        assert isinstance(reg, workflows.MatchedEnd) and np.allclose(reg.code, code)
+        assert np.allclose(reg.vertices, basis.template + np.tensordot(code, basis.fields, 1))
+        assert reg.chamfer > 0 and reg.varifold == 0.0
+
+
+def test_geodesic_between_codes_is_preconditioned_at_the_template_for_the_given_metric(sphere, monkeypatch):
+    basis, _ = sphere
+    real, metrics = geodesics.geodesic, []
+
+    def spy(*args, metric=None, **kwargs):
+        metrics.append(metric)
+        return real(*args, metric=metric, **kwargs)
+
+    monkeypatch.setattr(geodesics, "geodesic", spy)
+    found = workflows.geodesic_between(basis, workflows.KnownCode(A), workflows.KnownCode(B),
+                                       workflows.Options(weights="body", steps=4))
+    assert len(metrics) == 1 and np.array_equal(metrics[0], basis.template_metric(PRESETS["body"]))
+    assert found.distance > 0 and found.path.shape == (4, 4)
+
+
+def test_random_bodies_report_replaced_draws_and_the_cli_prints_them(sphere, monkeypatch, tmp_path, capsys):
+    basis, _ = sphere
+    plain = workflows.random_bodies(basis, 3, 2, shoot_steps=2)
+    assert plain.replaced == 0
+    real, calls = shooting.shoot, []
+
+    def shoot(*args, steps=10, **kwargs):  # the first draw fails with 2 and with 4 steps
+        calls.append(steps)
+        if len(calls) <= 2:
+            raise shooting.ShootingFailed("a geodesic step did not converge (test)")
+        return real(*args, steps=steps, **kwargs)
+
+    monkeypatch.setattr(shooting, "shoot", shoot)
+    bodies = workflows.random_bodies(basis, 3, 2, shoot_steps=2)
+    assert bodies.replaced == 1 and calls[:3] == [2, 4, 2]
+    assert np.allclose(bodies.codes[:2], plain.codes[1:])  # the first draw replaced by a spare
+    save_basis(tmp_path / "s.npz", basis)
+    calls.clear()
+    assert cli.main(["sample", "--basis", str(tmp_path / "s.npz"), "-n", "2", "-o", str(tmp_path / "out"),
+                     "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["replaced"] == 1
+    calls.clear()
+    assert cli.main(["sample", "--basis", str(tmp_path / "s.npz"), "-n", "2", "-o", str(tmp_path / "out")]) == 0
+    assert re.search(r"^\s+replaced\s+1$", capsys.readouterr().out, re.M)
+
+
+def test_code_of_each_input_kind(sphere):
+    basis, surface = sphere
+    known = workflows.code_of(basis, workflows.KnownCode(A))
+    assert np.array_equal(known.code, A) and known.detail is None and known.registration is None
+    verts = basis.template + np.tensordot(A, basis.fields, 1) + 0.01
+    mesh = workflows.mesh_input(basis, verts, basis.faces)
+    assert isinstance(mesh, workflows.TemplateMesh)
+    projected = workflows.code_of(basis, mesh)
+    assert np.allclose(basis.template + np.tensordot(projected.code, basis.fields, 1) + projected.detail, verts)
+    scan = raw_scan(surface, A, 4)
+    assert isinstance(workflows.mesh_input(basis, scan.verts, scan.faces), workflows.Scan)
+    with pytest.raises(InputError, match="Scan, a TemplateMesh or a KnownCode"):
+        workflows.code_of(basis, A)
+
+
+def test_cli_and_addon_interpolate_to_the_same_path(tmp_path, capsys):
+    """Two meshes through ``bareesa interpolate`` and the same codes through the add-on's Interpolate
+    (registered objects): one path (geodesic steps, preconditioning, anchoring and pacing agree)."""
+    support = pytest.importorskip("tests.addon_support")
+    import bareesa_addon
+    from bareesa.latent import project_to_basis
+    from bareesa_addon import convert
+
+    bpy = support.bpy
+    basis, _ = support.tiny_basis()
+    save_basis(tmp_path / "tiny.npz", basis)
+    codes = []
+    for name, code in (("a", A), ("b", B)):
+        save_mesh(tmp_path / f"{name}.ply", basis.template + np.tensordot(code, basis.fields, 1), basis.faces)
+        codes.append(project_to_basis(basis, basis.template + np.tensordot(code, basis.fields, 1))[0])
+    assert cli.main(["interpolate", str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "--basis",
+                     str(tmp_path / "tiny.npz"), "--steps", "6", "-o", str(tmp_path / "cli")]) == 0
+    capsys.readouterr()
+    from_cli = np.load(tmp_path / "cli" / "codes.npy")
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bareesa_addon.register()
+    try:
+        s = bpy.context.scene.bareesa
+        s.basis, s.metric, s.steps, s.geodesic_iterations = str(tmp_path / "tiny.npz"), "BASIS", 6, 500
+        s.frame_start, s.frame_end = 1, 6
+        names = bareesa_addon.solver.field_names(basis)
+        for name, code in zip(("a", "b"), codes):
+            bpy.ops.bareesa.load_template()
+            bpy.context.active_object.name = name
+            convert.set_code(bpy.context.active_object, names, code)
+        assert bpy.ops.bareesa.interpolate(object_a="a", object_b="b") == {"FINISHED"}
+        obj = bpy.data.objects["a_to_b"]
+        from_addon = np.stack([convert.code_at_frame(obj, names, f) for f in convert.keyed_frames(obj, names)])
+    finally:
+        bareesa_addon.unregister()
+    assert from_addon.shape == from_cli.shape == (6, 4)
+    assert np.allclose(from_addon, from_cli, atol=1e-5)
+
+
+def test_random_bodies_over_many_seeds_are_finite_and_non_degenerate(sphere):
+    # shooting refines its steps where they do not converge, so every draw of the fitted distribution
+    # (wide: 0.5 x the training spread, 20 seeds) gives a body, none folded or collapsed
+    from bareesa.mesh import face_geometry
+
+    basis, _ = sphere
+    template_areas = face_geometry(basis.template, basis.faces)[1]
+    for seed in range(20):
+        bodies = workflows.random_bodies(basis, 2, seed, shoot_steps=4)
+        assert bodies.codes.shape == (2, basis.n_fields) and np.isfinite(bodies.codes).all() and bodies.replaced == 0
+        for code in bodies.codes:
+            verts = basis.template + np.tensordot(code, basis.fields, 1)
+            vectors, areas, _ = face_geometry(verts, basis.faces)
+            assert areas.min() > 0.05 * template_areas.min()
+            # no face flipped against the template's orientation (a fold-over)
+            assert (np.einsum("fk,fk->f", vectors, face_geometry(basis.template, basis.faces)[0]) > 0).all()
