@@ -18,11 +18,11 @@ from ..errors import InputError
 from ..evaluation import chamfer
 from ..h2_metric import H2Weights
 from ..latent import Level
-from ..mesh import validate_mesh
+from ..mesh import face_geometry, validate_mesh
 from ..progress import Monitor
 from ..transforms import Similarity
 from .poses import POSE_FINALISTS, POSE_ITER, check_pose_candidates, try_poses
-from .prealign import PREALIGN_RATIO, prealign_candidates
+from .prealign import PREALIGN_RATIO, prealign_candidates, surface_moments
 from .problem import RegistrationProblem
 
 SCREEN_DIVISOR = 8          # candidate alignments are screened with 1/8 of the first level's iterations
@@ -31,6 +31,13 @@ SCREEN_FINALISTS = 2        # the best screened alignments get a short second le
 SCREEN_SECOND_ITER = 5      # first level's sigma a body is nearly front/back symmetric...
 SCREEN_TIE = 1.5            # ... when the second best scored within this factor of the best
 PREALIGN_FRACTION = 0.1     # share of the progress bar given to the pre-alignment
+#: A scan with fewer (non-zero-weight) faces than this, or than an eighth of the template's faces when
+#: that is fewer, is refused: it cannot say which of the basis' shapes it is (a one-triangle "scan"
+#: once registered for 21 minutes and came back as a full body).
+MIN_SCAN_FACES = 100
+#: A scan whose thinnest extent (smallest eigenvalue of its second moment of area, over the largest) is
+#: below this share of the template's is refused as flat (a sheet, a wall, a single view of a plane).
+MIN_FLATNESS_RATIO = 0.02
 
 
 @dataclass
@@ -115,6 +122,24 @@ def _check_landmarks(landmarks, n_verts):
 
 
 
+def check_plausible_scan(basis, verts, faces, face_weights=None):
+    """Refuse a scan that cannot be registered onto ``basis`` (InputError naming why): fewer faces than
+    MIN_SCAN_FACES (capped at an eighth of the template's), or flat against the template's extent
+    (MIN_FLATNESS_RATIO). verts (M, 3), faces (G, 3), face_weights (G,) or None."""
+    used = int(np.count_nonzero(face_geometry(verts, faces)[1] * (1.0 if face_weights is None else face_weights)))
+    need = min(MIN_SCAN_FACES, basis.faces.shape[0] // 8)
+    if used < need:
+        raise InputError(f"the scan has {used} face{'s' * (used != 1)} with area: too few to register onto basis '{basis.name}' "
+                         f"(at least {need}); give the whole scanned mesh, not a piece of it")
+    extent = lambda v, f, w: np.linalg.eigvalsh(surface_moments(v, f, w)[2])  # noqa: E731
+    scan, template = extent(verts, faces, face_weights), extent(basis.template, basis.faces, None)
+    flat, reference = scan[0] / scan[-1], template[0] / template[-1]
+    if flat < MIN_FLATNESS_RATIO * reference:
+        raise InputError(f"the scan is flat (its thinnest extent is {math.sqrt(flat):.2g} of its longest; the template's "
+                         f"{math.sqrt(reference):.2g}): it cannot be a shape of basis '{basis.name}'; check that the "
+                         "right object is selected and that floors or walls are masked out")
+
+
 def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, landmarks=None,
              landmark_weight=1.0, scan_face_weights=None, metric=None, kernel="binet", backend="auto",
              binning="auto", refine_transform=None, init_code=None, pose_candidates="auto", callback=None, cancel=None,
@@ -136,7 +161,8 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     when the basis has no other group) is tried as a start of the second level (see POSE_FINALISTS),
     "auto" the basis' ``extras["pose_prototypes"]`` if it has them, None none; dtype: precision of
     the objective (the optimiser is float64).
-    Raises MeshError/InputError on bad input, SolveCancelled when cancelled (no partial result).
+    Raises MeshError/InputError on bad input (``check_plausible_scan``: too few faces, flat), SolveCancelled
+    when cancelled (no partial result).
     """
     start_time = time.perf_counter()
     monitor = Monitor("register", callback, cancel)
@@ -145,6 +171,7 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     validate_mesh(scan_verts, scan_faces, "scan")
     sv, sf = np.asarray(scan_verts, np.float64), np.asarray(scan_faces, np.int64)
     face_w = _check_face_weights(scan_face_weights, sf.shape[0])
+    check_plausible_scan(basis, sv, sf, face_w)
     marks = _check_landmarks(landmarks, basis.template.shape[0])
     if not (math.isfinite(landmark_weight) and landmark_weight >= 0):
         raise InputError(f"landmark_weight must be finite and >= 0, got {landmark_weight}")
