@@ -232,7 +232,8 @@ def test_binned_measure_is_exact_for_the_orientation_kernel(kernel):
         ref = V.varifold_inner(*probe, *moved, sigma, kernel=kernel)
         out = V.varifold_inner(*probe, xb, nb, ab, sigma, kernel=kernel)
         assert torch.isclose(out, ref, rtol=1e-10, atol=0)
-        (g_ref,), (g_out,) = torch.autograd.grad(ref, p, retain_graph=True), torch.autograd.grad(out, p, retain_graph=True)
+        (g_ref,) = torch.autograd.grad(ref, p, retain_graph=True)
+        (g_out,) = torch.autograd.grad(out, p, retain_graph=True)
         assert float((g_out - g_ref).norm() / g_ref.norm()) < 1e-10
 
 
@@ -313,7 +314,8 @@ def test_binned_measure_loss_gradient_matches_finite_differences():
 def test_moved_binned_measure_is_the_binned_measure_of_the_moved_mesh(kernel):
     v, f = mesh(3, 0)
     groups, n = V.measure.cell_groups(V.varifold_measure(v, f)[0], 0.3)
-    R, s, t = torch.tensor(random_rotation(2), dtype=DT), torch.tensor(1.7, dtype=DT), torch.tensor([0.3, -1.0, 2.0], dtype=DT)
+    R, s = torch.tensor(random_rotation(2), dtype=DT), torch.tensor(1.7, dtype=DT)
+    t = torch.tensor([0.3, -1.0, 2.0], dtype=DT)
     x, feat, _ = V.group_features(*V.varifold_measure(v, f), groups, n, kernel)
     xm, fm, _ = V.group_features(*V.varifold_measure(s * v @ R.T + t, f), groups, n, kernel)
     x2, f2 = V.moved_measure(x, feat, R, s, t, kernel)

@@ -9,13 +9,25 @@ anything else is a bug and keeps its traceback.
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from . import __version__
+from .basis_building import build_basis
+from .basis_io import load_basis, save_basis
 from .errors import BareEsaError, InputError
+from .evaluation import mesh_metrics, vertex_error
+from .geodesics import decode_path
+from .h2_metric import H2Weights, path_energy
+from .mesh import load_mesh, save_mesh, validate_mesh
+from .progress import tqdm_callback
+from .scan_simulator import add_simulate_scan_arguments, apply_similarity, simulate_scan, simulate_scan_cli
+from .statistics import fit_training_distribution, pose_prototypes, sample_velocities
+from .workflows import (KnownCode, Options, Scan, code_of, extrapolate, geodesic_between, mesh_input, path_between,
+                        random_bodies, stored_distribution, transfer)
 
 
 def _print(result, as_json, title=None):
@@ -32,9 +44,6 @@ def _print(result, as_json, title=None):
 
 def cmd_metrics(args):
     """Chamfer, Hausdorff and varifold between two meshes of any topology."""
-    from .evaluation import mesh_metrics
-    from .mesh import load_mesh, validate_mesh
-
     (va, fa), (vb, fb) = load_mesh(args.a), load_mesh(args.b)
     validate_mesh(va, fa, name=str(args.a))
     validate_mesh(vb, fb, name=str(args.b))
@@ -46,8 +55,6 @@ def cmd_metrics(args):
 
 def load_path(paths):
     """Load same-topology meshes as a path: -> verts (T, N, 3) float64 array, faces (F, 3)."""
-    from .mesh import load_mesh, validate_mesh
-
     frames, faces = [], None
     for p in paths:
         v, f = load_mesh(p)
@@ -65,8 +72,6 @@ def load_path(paths):
 
 def cmd_path_energy(args):
     """H2 path energy of the path through the given same-topology meshes."""
-    from .h2_metric import H2Weights, path_energy
-
     if len(args.frames) < 2:
         raise InputError("path-energy needs at least two meshes")
     weights = H2Weights.parse(args.metric)
@@ -106,10 +111,6 @@ def _parse_components(specs, groups):
 
 def cmd_build_basis(args):
     """PCA basis from registered 4D sequences (differences of consecutive frames per group)."""
-    from .basis_building import build_basis
-    from .basis_io import save_basis
-    from .mesh import load_mesh, validate_mesh
-
     template, faces = load_mesh(args.template)
     validate_mesh(template, faces, name=str(args.template))
     groups = _parse_sequences(args.sequence)
@@ -132,11 +133,9 @@ def cmd_build_basis(args):
                         name=args.name or args.output.stem, units=args.units, provenance=provenance,
                         elastic=tuple(args.elastic or ()))
     if not args.no_distribution:
-        from .statistics import fit_training_distribution
 
         basis.extras.update(fit_training_distribution(basis, [f for s in sequences.values() for f in s]))
     if "pose" in sequences:  # starting poses tried by registration (core.registration, pose candidates)
-        from .statistics import pose_prototypes
 
         basis.extras["pose_prototypes"] = pose_prototypes(basis, np.concatenate(sequences["pose"]))
     save_basis(args.output, basis)
@@ -147,24 +146,23 @@ def cmd_build_basis(args):
 
 def _load_input(basis, path):
     """A mesh file as a workflow input (validated): a TemplateMesh in the basis' template topology, else a Scan."""
-    from .mesh import load_mesh, validate_mesh
-    from .workflows import mesh_input
-
     v, f = load_mesh(path)
     validate_mesh(v, f, name=str(path))
     return mesh_input(basis, v, f)
 
 
+def _basis_and_pair(args, min_steps=None):
+    """The verbs on two meshes A, B: check --steps, load the basis and both inputs -> (basis, a, b)."""
+    if min_steps is not None and args.steps < min_steps:
+        raise InputError(f"--steps must be at least {min_steps}, got {args.steps}")
+    basis = load_basis(args.basis)
+    return basis, _load_input(basis, args.a), _load_input(basis, args.b)
+
+
 def cmd_distance(args):
     """Geodesic distance between two meshes in the latent space of a basis."""
-    import time
-
-    from .basis_io import load_basis
-    from .workflows import Options, geodesic_between
-
     start = time.perf_counter()
-    basis = load_basis(args.basis)
-    a, b = _load_input(basis, args.a), _load_input(basis, args.b)
+    basis, a, b = _basis_and_pair(args)
     found = geodesic_between(basis, a, b, Options(steps=10))
     _print({"distance": found.distance, "seconds": time.perf_counter() - start}, args.json)
 
@@ -181,16 +179,8 @@ def _detail_report(ends, detail):
 
 def cmd_interpolate(args):
     """Evenly paced geodesic in-betweens of two meshes, written as T meshes and their codes."""
-    import time
-
-    from .basis_io import load_basis
-    from .workflows import Options, path_between
-
-    if args.steps < 2:
-        raise InputError(f"--steps must be at least 2, got {args.steps}")
     start = time.perf_counter()
-    basis = load_basis(args.basis)
-    a, b = _load_input(basis, args.a), _load_input(basis, args.b)
+    basis, a, b = _basis_and_pair(args, min_steps=2)
     found = path_between(basis, a, b, args.steps, Options(steps=max(args.steps, 3)), anchor=not args.no_anchor,
                          keep_detail=not args.no_detail)
     seconds = time.perf_counter() - start
@@ -202,9 +192,6 @@ def cmd_interpolate(args):
 
 def _write_frames(output, basis, codes, prefix="frame", detail=None):
     """Frames F(codes) (+ detail (T, N, 3) if given) as PLY meshes, and codes.npy."""
-    from .geodesics import decode_path
-    from .mesh import save_mesh
-
     t, _, h = basis.tensors()
     output.mkdir(parents=True, exist_ok=True)
     width = len(str(len(codes) - 1))
@@ -218,16 +205,8 @@ def _write_frames(output, basis, codes, prefix="frame", detail=None):
 
 def cmd_extrapolate(args):
     """Continue the motion A -> B along the latent geodesic by T frames."""
-    import time
-
-    from .basis_io import load_basis
-    from .workflows import extrapolate
-
-    if args.steps < 1:
-        raise InputError(f"--steps must be at least 1, got {args.steps}")
     start = time.perf_counter()
-    basis = load_basis(args.basis)
-    a, b = _load_input(basis, args.a), _load_input(basis, args.b)
+    basis, a, b = _basis_and_pair(args, min_steps=1)
     motion = extrapolate(basis, a, b, args.steps, anchor=not args.no_anchor, keep_detail=not args.no_detail)
     _write_frames(args.output, basis, motion.path, detail=motion.detail)
     # where a step did not converge, shooting refined time (shooting.ShootingReport): say where
@@ -240,9 +219,6 @@ def cmd_extrapolate(args):
 
 def cmd_transfer(args):
     """Put the motion of the given frames on another identity (swap the identity group)."""
-    from .basis_io import load_basis
-    from .workflows import transfer
-
     basis = load_basis(args.basis)
     frames = [_load_input(basis, p) for p in args.frames]
     out = transfer(basis, frames, _load_input(basis, args.identity), args.group).motion
@@ -252,9 +228,6 @@ def cmd_transfer(args):
 
 def cmd_sample(args):
     """Random shapes: Gaussian mixture on initial velocities at the template, then shoot."""
-    from .basis_io import load_basis
-    from .workflows import random_bodies, stored_distribution
-
     if args.n < 1:
         raise InputError(f"-n must be at least 1, got {args.n}")
     basis = load_basis(args.basis)
@@ -291,11 +264,6 @@ def load_landmarks(path):
 
 def cmd_register(args):
     """Latent code of a raw scan; writes the registered mesh (template topology, scan's frame)."""
-    from .basis_io import load_basis
-    from .mesh import load_mesh, save_mesh, validate_mesh
-    from .progress import tqdm_callback
-    from .workflows import Scan, code_of
-
     basis = load_basis(args.basis)
     verts, faces = load_mesh(args.scan)
     validate_mesh(verts, faces, name=str(args.scan))
@@ -317,8 +285,6 @@ def cmd_register(args):
 
 def cmd_simulate_scan(args):
     """A realistic unregistered scan of a mesh (remesh, noise, holes, crop, rigid motion, clutter)."""
-    from .scan_simulator import simulate_scan_cli
-
     info = simulate_scan_cli(args)
     _print({"output": info["output"], "vertices": info["n_vertices"], "faces": info["n_faces"],
             "scale": float(info["scale"])}, args.json, "simulated scan")
@@ -326,16 +292,6 @@ def cmd_simulate_scan(args):
 
 def cmd_demo(args):
     """The solver end to end on a bundled basis: two simulated scans -> registration -> geodesic."""
-    import time
-
-    from .basis_io import load_basis
-    from .evaluation import vertex_error
-    from .mesh import save_mesh
-    from .progress import tqdm_callback
-    from .scan_simulator import apply_similarity, simulate_scan
-    from .statistics import sample_velocities
-    from .workflows import KnownCode, Options, Scan, code_of, path_between, stored_distribution
-
     if args.steps < 2:
         raise InputError(f"--steps must be at least 2, got {args.steps}")
     start = time.perf_counter()
@@ -374,6 +330,23 @@ def cmd_demo(args):
         print(f"  {name:<24} {what:<36} {seconds:6.1f} s  {note}")
     print("\nThe same in Blender, with keyframes, motion transfer and random bodies: bareesa-demo --out DIR "
           "(needs the bpy module: pip install -e \".[blender]\")")
+
+
+def _pair_parser(sub, name, func, text, frames=None):
+    """A verb on two meshes A, B and a basis; frames = (help of --steps, --no-anchor, --no-detail) for the
+    verbs that write frames to -o."""
+    p = sub.add_parser(name, help=text)
+    p.add_argument("a", type=Path)
+    p.add_argument("b", type=Path)
+    p.add_argument("--basis", default="humanoid", help="bundled basis name or .npz path")
+    if frames is not None:
+        steps, anchor, detail = frames
+        p.add_argument("--steps", type=int, default=10, help=steps)
+        p.add_argument("--no-anchor", action="store_true", help=anchor)
+        p.add_argument("--no-detail", action="store_true", help=detail)
+        p.add_argument("-o", "--output", type=Path, required=True)
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=func)
 
 
 def build_parser():
@@ -421,39 +394,19 @@ def build_parser():
     p.add_argument("-o", "--output", type=Path, required=True)
     p.set_defaults(func=cmd_build_basis)
 
-    for name, func, text in (("distance", cmd_distance, "geodesic distance between two meshes"),
-                             ("interpolate", cmd_interpolate, "geodesic in-betweens of two meshes")):
-        p = sub.add_parser(name, help=text)
-        p.add_argument("a", type=Path)
-        p.add_argument("b", type=Path)
-        p.add_argument("--basis", default="humanoid", help="bundled basis name or .npz path")
-        if name == "interpolate":
-            p.add_argument("--steps", type=int, default=10, help="number of frames written, ends included")
-            p.add_argument("--no-anchor", action="store_true",
-                           help="write the geodesic as solved (by default the body's unmoving part is kept where "
-                                "the straight line between the ends puts it: the metric's L2 term lets it sink)")
-            p.add_argument("--no-detail", action="store_true",
-                           help="write F(code) only: by default, when both inputs are in template topology, what "
-                                "their codes miss (off-basis detail) is carried along so the frames pass through "
-                                "the inputs exactly")
-            p.add_argument("-o", "--output", type=Path, required=True)
-        p.add_argument("--json", action="store_true", help="print JSON")
-        p.set_defaults(func=func)
-
-    p = sub.add_parser("extrapolate", help="continue a motion A -> B along the geodesic")
-    p.add_argument("a", type=Path)
-    p.add_argument("b", type=Path)
-    p.add_argument("--basis", default="humanoid", help="bundled basis name or .npz path")
-    p.add_argument("--steps", type=int, default=10, help="number of new frames")
-    p.add_argument("--no-anchor", action="store_true",
-                   help="write the geodesic as shot (by default the body's unmoving part is kept where the "
-                        "straight latent line puts it)")
-    p.add_argument("--no-detail", action="store_true",
-                   help="write F(code) only: by default, when both inputs are in template topology, what their "
-                        "codes miss (off-basis detail) is continued linearly, as the latent line is")
-    p.add_argument("-o", "--output", type=Path, required=True)
-    p.add_argument("--json", action="store_true", help="print JSON")
-    p.set_defaults(func=cmd_extrapolate)
+    _pair_parser(sub, "distance", cmd_distance, "geodesic distance between two meshes")
+    _pair_parser(sub, "interpolate", cmd_interpolate, "geodesic in-betweens of two meshes", frames=(
+        "number of frames written, ends included",
+        "write the geodesic as solved (by default the body's unmoving part is kept where the straight line "
+        "between the ends puts it: the metric's L2 term lets it sink)",
+        "write F(code) only: by default, when both inputs are in template topology, what their codes miss "
+        "(off-basis detail) is carried along so the frames pass through the inputs exactly"))
+    _pair_parser(sub, "extrapolate", cmd_extrapolate, "continue a motion A -> B along the geodesic", frames=(
+        "number of new frames",
+        "write the geodesic as shot (by default the body's unmoving part is kept where the straight latent "
+        "line puts it)",
+        "write F(code) only: by default, when both inputs are in template topology, what their codes miss "
+        "(off-basis detail) is continued linearly, as the latent line is"))
 
     p = sub.add_parser("transfer", help="transfer the motion of FRAMES onto another identity")
     p.add_argument("frames", nargs="+", type=Path)
@@ -474,7 +427,6 @@ def build_parser():
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_sample)
 
-    from .scan_simulator import add_simulate_scan_arguments
 
     p = sub.add_parser("simulate-scan", help="turn a mesh into a realistic unregistered scan")
     add_simulate_scan_arguments(p)

@@ -129,15 +129,15 @@ def check_plausible_scan(basis, verts, faces, face_weights=None):
     used = int(np.count_nonzero(face_geometry(verts, faces)[1] * (1.0 if face_weights is None else face_weights)))
     need = min(MIN_SCAN_FACES, basis.faces.shape[0] // 8)
     if used < need:
-        raise InputError(f"the scan has {used} face{'s' * (used != 1)} with area: too few to register onto basis '{basis.name}' "
-                         f"(at least {need}); give the whole scanned mesh, not a piece of it")
+        raise InputError(f"the scan has {used} face{'s' * (used != 1)} with area: too few to register onto basis "
+                         f"'{basis.name}' (at least {need}); give the whole scanned mesh, not a piece of it")
     extent = lambda v, f, w: np.linalg.eigvalsh(surface_moments(v, f, w)[2])  # noqa: E731
     scan, template = extent(verts, faces, face_weights), extent(basis.template, basis.faces, None)
     flat, reference = scan[0] / scan[-1], template[0] / template[-1]
     if flat < MIN_FLATNESS_RATIO * reference:
-        raise InputError(f"the scan is flat (its thinnest extent is {math.sqrt(flat):.2g} of its longest; the template's "
-                         f"{math.sqrt(reference):.2g}): it cannot be a shape of basis '{basis.name}'; check that the "
-                         "right object is selected and that floors or walls are masked out")
+        raise InputError(f"the scan is flat (its thinnest extent is {math.sqrt(flat):.2g} of its longest; the "
+                         f"template's {math.sqrt(reference):.2g}): it cannot be a shape of basis '{basis.name}'; check "
+                         "that the right object is selected and that floors or walls are masked out")
 
 
 def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, landmarks=None,

@@ -228,7 +228,8 @@ class RegistrationProblem:
             final = meshes[-1]
             if self.n_extra:
                 p = x[steps * p_dim:] * units_t
-                final = (self.center_t + torch.exp(log_scale(p[6])) * (final - self.center_t) @ axis_angle_rotation(p[:3]).T
+                rotation = axis_angle_rotation(p[:3])
+                final = (self.center_t + torch.exp(log_scale(p[6])) * (final - self.center_t) @ rotation.T
                          + p[3:6])
             gamma = loss(final, self.faces)
             fit = gamma
