@@ -10,8 +10,8 @@ import numpy as np
 
 from .errors import InputError
 from .geodesics import geodesic
-from .progress import Monitor
 from .latent import project_to_basis
+from .progress import Monitor
 from .shooting import initial_velocity, shoot
 
 
