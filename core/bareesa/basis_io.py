@@ -98,5 +98,23 @@ def load_basis(name_or_path):
                  groups=card.get("groups", {}), weights=card.get("metric", "body"),
                  schedule=card.get("schedule", PAPER_BODY_SCHEDULE), scale=card.get("scale", 1.0),
                  units=card.get("units", ""), name=card.get("name", path.stem),
-                 provenance=card.get("provenance", {}),
+                 provenance=card.get("provenance", {}), fit_check=card.get("fit_check", {}),
                  extras={k[6:]: v for k, v in data.items() if k.startswith("extra_")})
+
+
+def update_card(path, **entries):
+    """Set top-level entries of a basis file's card (inside the .npz and in the .json beside it, whose
+    other entries, e.g. measured accuracy, are kept); the arrays are rewritten unchanged."""
+    path = resolve_basis_path(path)
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    card = json.loads(arrays["card"].tobytes().decode()) | entries
+    arrays["card"] = np.frombuffer(json.dumps(card).encode(), dtype=np.uint8)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    tmp.replace(path)
+    side = path.with_suffix(".json")
+    side_card = (json.loads(side.read_text()) if side.exists() else card) | entries
+    json_tmp = path.with_suffix(".json.tmp")
+    json_tmp.write_text(json.dumps(side_card, indent=2) + "\n")
+    json_tmp.replace(side)

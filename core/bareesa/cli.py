@@ -87,13 +87,19 @@ def cmd_path_energy(args):
 
 
 def _parse_sequences(specs):
-    """['pose:a.ply,b.ply', ...] -> {group: [list of paths]} (several sequences per group allowed)."""
+    """['pose:a.ply,b.ply', 'pose:DIR', ...] -> {group: [list of paths]} (several sequences per group allowed);
+    a single DIR (or summary.json/.csv) is a register-batch output: its registered meshes in order."""
+    from .batch import registered_meshes
+
     groups = {}
     for spec in specs:
         group, sep, files = spec.partition(":")
         paths = [Path(p) for p in files.split(",") if p]
+        if len(paths) == 1 and (paths[0].is_dir() or paths[0].name.startswith("summary.")):
+            paths = registered_meshes(paths[0])
         if not sep or not group or len(paths) < 2:
-            raise InputError(f"--sequence '{spec}' must look like GROUP:F1,F2[,...] with at least two frames")
+            raise InputError(f"--sequence '{spec}' must look like GROUP:F1,F2[,...] or GROUP:BATCH_DIR with at "
+                             "least two frames")
         groups.setdefault(group, []).append(paths)
     return groups
 
@@ -280,7 +286,51 @@ def cmd_register(args):
         _print(out, True)
     else:
         _print({"output": str(args.output), "varifold": out["varifold"], "chamfer": out["chamfer"],
-                "seconds": out["seconds"]}, False, f"registered {args.scan} onto basis '{basis.name}'")
+                "residual": out["residual"], "seconds": out["seconds"]}, False,
+               f"registered {args.scan} onto basis '{basis.name}'")
+    if res.poor_fit:
+        print(f"bareesa register: warning: poor fit: the scan is {res.residual:.3g} of the basis' size from the "
+              f"registered surface, above the {basis.fit_check['poor_fit_above']:.3g} the basis reaches on its own "
+              "held-out scans: is it a shape of this basis? (check the selection, mask floors, add landmarks)",
+              file=sys.stderr)
+
+
+def cmd_register_batch(args):
+    """Register many scans (or the frames of one 4D capture) on a Dask cluster; resumable."""
+    from .batch import MISSING_DASK, register_batch
+
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
+        raise InputError(MISSING_DASK) from None
+    scans = list(args.scans)
+    if args.list is not None:
+        if not args.list.is_file():
+            raise InputError(f"--list file {args.list} does not exist")
+        lines = [ln.strip() for ln in args.list.read_text().splitlines()]
+        # relative paths in the list are relative to the list file's folder
+        scans += [p if p.is_absolute() else args.list.parent / p
+                  for p in (Path(ln) for ln in lines if ln and not ln.startswith("#"))]
+    if args.chunk is not None and not args.sequence:
+        raise InputError("--chunk only applies with --sequence")
+    report = register_batch(args.basis, scans, args.output, workers=args.workers,
+                            threads_per_worker=args.threads_per_worker, scheduler=args.scheduler,
+                            sequence=args.sequence, chunk=args.chunk, progress=not args.json,
+                            log=lambda text: print(text, file=sys.stderr))
+    if args.json:
+        _print({"counts": report.counts, "seams": report.seams, "seconds": report.seconds,
+                "output": str(report.output), "rows": report.rows}, True)
+        return
+    for row in report.rows:
+        what = (f"varifold {row['varifold']:.3g}, chamfer {row['chamfer']:.3g}" if row["status"] == "ok"
+                else row["error"] or "")
+        print(f"  {row['name']:<24} {row['status']:<8} {what}")
+    for seam in report.seams:
+        if seam["flagged"]:
+            print(f"  seam {seam['before']} -> {seam['after']}: jump {seam['jump']:.3g}, "
+                  f"{seam['ratio']:.1f} x the median motion")
+    _print({**report.counts, "seconds": report.seconds, "summary": str(report.output / "summary.csv")}, False,
+           f"register-batch onto basis '{args.basis}'")
 
 
 def cmd_simulate_scan(args):
@@ -379,10 +429,26 @@ def build_parser():
     p.add_argument("--json", action="store_true", help="print JSON (code, varifold, chamfer, seconds, levels)")
     p.set_defaults(func=cmd_register)
 
+    p = sub.add_parser("register-batch", help="register many scans (or a 4D sequence) on a Dask cluster, resumably")
+    p.add_argument("scans", nargs="*", type=Path, metavar="SCAN")
+    p.add_argument("--list", type=Path, help="a file of scan paths, one a line (relative to the file's folder)")
+    p.add_argument("--basis", default="humanoid", help="bundled basis name or .npz path")
+    p.add_argument("-o", "--output", type=Path, required=True,
+                   help="folder of the registered meshes, JSON records and summary.csv/.json")
+    p.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster (default 2)")
+    p.add_argument("--threads-per-worker", type=int, default=1, help="torch threads per worker (default 1)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="use a running Dask scheduler (tcp://HOST:8786)")
+    p.add_argument("--sequence", action="store_true",
+                   help="the scans are the frames of one 4D capture, in order: warm start each from the previous")
+    p.add_argument("--chunk", type=int, metavar="K", help="with --sequence: frames per chunk run in parallel")
+    p.add_argument("--json", action="store_true", help="print JSON (counts, seams, a row per scan)")
+    p.set_defaults(func=cmd_register_batch)
+
     p = sub.add_parser("build-basis", help="PCA basis from registered 4D sequences")
     p.add_argument("template", type=Path)
     p.add_argument("--sequence", action="append", required=True, metavar="GROUP:F1,F2,...",
-                   help="frames of one registered sequence, in order (repeatable, several per group)")
+                   help="frames of one registered sequence, in order (repeatable, several per group), or "
+                   "GROUP:DIR with DIR a register-batch output folder (its registered meshes, in order)")
     p.add_argument("--components", action="append", metavar="GROUP=K", help="fields kept per group (default 10)")
     p.add_argument("--metric", default="body", help="metric weights stored with the basis (preset or six numbers)")
     p.add_argument("--elastic", action="append", metavar="GROUP",

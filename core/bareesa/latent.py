@@ -68,6 +68,9 @@ class Basis:
     name: str = "basis"
     provenance: dict = field(default_factory=dict)
     extras: dict = field(default_factory=dict)  # further arrays, e.g. a fitted distribution
+    #: how a registration's residual compares with the basis' own (``registration.multiscale``):
+    #: {"poor_fit_above": threshold, "held_out_p95": ..., "scans": n, "measured_by": ...}; {} uncalibrated
+    fit_check: dict = field(default_factory=dict)
 
     def __post_init__(self):
         validate_basis(self)
@@ -110,7 +113,8 @@ class Basis:
                 "groups": {k: list(map(int, v)) for k, v in self.groups.items()},
                 "metric": list(self.weights.as_tuple()),
                 "schedule": [asdict(lv) for lv in self.schedule],
-                "scale": float(self.scale), "units": self.units, "provenance": self.provenance}
+                "scale": float(self.scale), "units": self.units, "provenance": self.provenance,
+                **({"fit_check": self.fit_check} if self.fit_check else {})}
 
 
 def validate_basis(b):

@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from ..errors import InputError
 from ..evaluation import chamfer
@@ -50,7 +51,9 @@ class RegistrationResult:
     levels one dict per schedule level {sigma, weight, steps, iterations, energy, varifold,
     objective, binned, seconds}; varifold the squared varifold residual at the finest sigma (template
     frame); chamfer between vertices and the scan (scan frame); seconds of wall time;
-    prealignment the candidate alignment the registration started from.
+    prealignment the candidate alignment the registration started from; residual the mean distance
+    from the scan to the registered surface over the basis' size (``fit_residual``); poor_fit whether
+    it is far above what the basis reaches on its own scans (``basis.fit_check``; None uncalibrated).
     """
 
     code: np.ndarray
@@ -62,11 +65,14 @@ class RegistrationResult:
     chamfer: float
     seconds: float
     prealignment: Similarity = None
+    residual: float = None
+    poor_fit: bool = None
 
     def to_json(self):
-        """JSON-ready summary {code, varifold, chamfer, seconds, levels, transform}."""
+        """JSON-ready summary {code, varifold, chamfer, residual, poor_fit, seconds, levels, transform}."""
         return {"code": [float(c) for c in self.code], "varifold": float(self.varifold),
                 "chamfer": float(self.chamfer), "seconds": float(self.seconds),
+                "residual": None if self.residual is None else float(self.residual), "poor_fit": self.poor_fit,
                 "levels": [{k: (float(v) if isinstance(v, float) else v) for k, v in lv.items()}
                            for lv in self.levels],
                 "transform": self.transform.to_dict()}
@@ -138,6 +144,21 @@ def check_plausible_scan(basis, verts, faces, face_weights=None):
         raise InputError(f"the scan is flat (its thinnest extent is {math.sqrt(flat):.2g} of its longest; the "
                          f"template's {math.sqrt(reference):.2g}): it cannot be a shape of basis '{basis.name}'; check "
                          "that the right object is selected and that floors or walls are masked out")
+
+
+def fit_residual(basis, vertices, scan_points, transform):
+    """Mean distance from scan points (M, 3) to the registered surface (vertices (N, 3), both in the
+    scan's frame) over the basis' size, in the template frame (units and scale of the scan cancel): the
+    surface is sampled at its vertices and face barycentres -> float."""
+    surface = np.concatenate([vertices, face_geometry(vertices, basis.faces)[2]])
+    return float(cKDTree(surface).query(scan_points, k=1)[0].mean() * transform.scale / basis.scale)
+
+
+def is_poor_fit(basis, residual):
+    """Whether a residual (``fit_residual``) is far above what the basis reaches on its own held-out scans
+    (``basis.fit_check["poor_fit_above"]``); None when the basis is not calibrated."""
+    threshold = basis.fit_check.get("poor_fit_above")
+    return None if threshold is None else bool(residual > threshold)
 
 
 def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, landmarks=None,
@@ -252,6 +273,8 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     decoded = basis.template + np.tensordot(code, basis.fields, axes=1)
     vertices = transform.invert(decoded)
     used = sv if face_w is None else sv[np.unique(sf[face_w > 0])]
+    residual = fit_residual(basis, vertices, used, transform)
     return RegistrationResult(code=code, vertices=vertices, path=path, transform=transform, levels=report,
                               varifold=report[-1]["varifold"], chamfer=chamfer(vertices, used),
-                              seconds=time.perf_counter() - start_time, prealignment=initial)
+                              seconds=time.perf_counter() - start_time, prealignment=initial, residual=residual,
+                              poor_fit=is_poor_fit(basis, residual))

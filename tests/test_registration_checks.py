@@ -1,0 +1,88 @@
+"""Scans that cannot be registered are refused up front, with the reason, before any solve; a poor fit is flagged."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from bareesa import registration, synthetic
+from bareesa.errors import InputError
+from bareesa.registration import multiscale
+
+
+@pytest.fixture(scope="module")
+def basis():
+    return synthetic.smooth_sphere_basis(subdivisions=2, n_fields=4, seed=0)[0]
+
+
+def test_one_triangle_scan_is_refused_before_any_solve(basis, monkeypatch):
+    def solve(*args, **kwargs):
+        raise AssertionError("the pre-alignment ran for a scan that should have been refused")
+
+    monkeypatch.setattr(multiscale, "prealign_candidates", solve)
+    with pytest.raises(InputError, match=r"1 face with area: too few to register onto basis"):
+        registration.register(basis, np.eye(3), np.array([[0, 1, 2]]))
+
+
+def test_a_scan_with_too_few_faces_for_the_template_is_refused(basis):
+    need = min(multiscale.MIN_SCAN_FACES, basis.faces.shape[0] // 8)
+    sphere = trimesh.creation.icosphere(subdivisions=0)  # 20 faces
+    assert len(sphere.faces) < need
+    with pytest.raises(InputError, match=f"at least {need}"):
+        registration.register(basis, sphere.vertices, sphere.faces)
+
+
+def test_a_flat_sheet_is_refused_and_a_real_scan_is_not(basis):
+    sheet = trimesh.creation.box(extents=(1.0, 1.0, 1e-3)).subdivide().subdivide().subdivide()
+    with pytest.raises(InputError, match="the scan is flat"):
+        multiscale.check_plausible_scan(basis, sheet.vertices, sheet.faces)
+    u, faces = synthetic.resampled_sphere(2, seed=3)
+    multiscale.check_plausible_scan(basis, 2.5 * u, faces)  # a sphere of another size: accepted
+
+
+def test_faces_weighted_zero_do_not_count(basis):
+    u, faces = synthetic.resampled_sphere(2, seed=3)
+    weights = np.zeros(len(faces))
+    weights[:10] = 1.0
+    with pytest.raises(InputError, match="10 faces with area"):
+        multiscale.check_plausible_scan(basis, u, faces, weights)
+
+
+
+def test_a_wrong_shape_is_flagged_as_a_poor_fit_and_a_scan_of_the_basis_is_not(basis):
+    from bareesa.latent import Level
+
+    schedule = (Level(0.25, 1e3, 1, 10), Level(0.1, 1e5, 1, 10))
+    code = np.array([0.4, -0.3, 0.2, 0.3])
+    u, faces = synthetic.resampled_sphere(2, seed=3)
+    truth = basis.template + np.tensordot(code, basis.fields, axes=1)
+    # the same surface on another triangulation: nearest template points of the resampled sphere
+    good = truth[np.argmin(((u[:, None] - synthetic.icosphere(2)[0][None]) ** 2).sum(-1), axis=1)]
+    tv, tf = synthetic.torus(24, 12)
+    torus = tv * np.sqrt((basis.template ** 2).sum(1).mean() / (tv ** 2).sum(1).mean())
+    uncalibrated = registration.register(basis, good, faces, schedule=schedule)
+    assert uncalibrated.poor_fit is None and uncalibrated.residual > 0
+    basis.fit_check = {"poor_fit_above": 2 * uncalibrated.residual}
+    try:
+        assert multiscale.is_poor_fit(basis, uncalibrated.residual) is False
+        flagged = registration.register(basis, torus, tf, schedule=schedule)
+        assert flagged.residual > 3 * uncalibrated.residual
+        assert flagged.poor_fit is True and flagged.to_json()["poor_fit"] is True
+    finally:
+        basis.fit_check = {}
+
+
+def test_update_card_stores_entries_in_the_file_and_beside_it(basis, tmp_path):
+    import json
+
+    from bareesa import basis_io
+
+    path = tmp_path / "b.npz"
+    basis_io.save_basis(path, basis)
+    card = json.loads(path.with_suffix(".json").read_text()) | {"accuracy": {"kept": 1}}
+    path.with_suffix(".json").write_text(json.dumps(card))
+    basis_io.update_card(path, fit_check={"poor_fit_above": 0.05})
+    loaded = basis_io.load_basis(path)
+    assert loaded.fit_check == {"poor_fit_above": 0.05}
+    assert np.array_equal(loaded.fields, basis.fields) and np.array_equal(loaded.faces, basis.faces)
+    side = json.loads(path.with_suffix(".json").read_text())
+    assert side["fit_check"] == {"poor_fit_above": 0.05} and side["accuracy"] == {"kept": 1}
