@@ -1,0 +1,122 @@
+"""What a user runs, timed: the default bundled basis, through ``bareesa.workflows`` as the CLI and
+the add-on call it, every stage on (pre-alignment, pose candidates, refinement).
+
+Rows: registration of a ~50k-face simulated scan (remeshed, noisy, holed, arbitrary rotation and
+scale) against its true vertices; interpolation between two known codes at T = 24 frames;
+symmetric matching of two raw scans; extrapolation of 10 frames; 20 random bodies. Each with wall
+and CPU seconds (CPU over all threads of this process) and an accuracy or outcome beside it.
+``--paper`` adds the paper-scale problem of ``bench.registration_speed`` (6,890 vertices, P = 170,
+55k-face scan) as a second table.
+
+    python -m bench.user_speed [--basis humanoid] [--paper] [--device cpu] [--threads 2] [--skip ...]
+"""
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+from bench.common import markdown_table, report
+from bareesa import basis_io, evaluation, workflows
+from bareesa.scan_simulator import apply_similarity, simulate_scan
+
+TASKS = ("registration", "interpolation", "matching", "extrapolation", "random")
+
+
+def timed(fn):
+    """Run fn() -> (its result, wall seconds, CPU seconds)."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    out = fn()
+    return out, time.perf_counter() - t0, time.process_time() - c0
+
+
+def scan_of(basis, code, seed, resolution):
+    """A simulated scan of F(code) and its true vertices in the scan's frame: -> workflows.Scan, (N, 3)."""
+    truth = basis.template + np.tensordot(code, basis.fields, axes=1)
+    verts, faces, info = simulate_scan(truth, basis.faces, seed=seed, resolution=resolution)
+    return workflows.Scan(verts, faces), apply_similarity(info, truth)
+
+
+def error_text(basis, got, truth, scale):
+    """Mean vertex error in the basis' units and as a share of its size."""
+    err = evaluation.vertex_error(got, truth)["mean"] / scale
+    size = float(np.ptp(basis.template, axis=0).max())
+    value = f"{err * 1000:.1f} mm" if basis.units == "m" else f"{err:.3g} {basis.units or 'units'}"
+    return f"vertex error mean {value} ({100 * err / size:.2f} % of size)"
+
+
+def user_rows(basis, options, skip, resolution):
+    """The table of what a user runs on ``basis``: rows [task, wall, CPU, outcome]."""
+    codes = workflows.random_bodies(basis, 2, 7, options).codes
+    rows = []
+    if "registration" not in skip:
+        scan, truth = scan_of(basis, codes[0], 11, resolution)
+        found, wall, cpu = timed(lambda: workflows.code_of(basis, scan, options))
+        reg = found.registration
+        rows.append([f"registration, {len(scan.faces)}-face scan", wall, cpu,
+                     error_text(basis, reg.vertices, truth, 1.0) + f"; residual {reg.residual:.3g}"])
+    if "interpolation" not in skip:
+        ends = [workflows.KnownCode(c) for c in codes]
+        found, wall, cpu = timed(lambda: workflows.path_between(basis, *ends, 24, options))
+        rows.append(["interpolation, known codes, T = 24", wall, cpu, f"distance {found.distance:.4g}"])
+    if "matching" not in skip:
+        (scan_a, truth_a), (scan_b, truth_b) = scan_of(basis, codes[0], 12, resolution), \
+            scan_of(basis, codes[1], 13, resolution)
+        found, wall, cpu = timed(lambda: workflows.geodesic_between(basis, scan_a, scan_b, options))
+        ends = "; ".join(error_text(basis, e.registration.vertices, t, 1.0)
+                         for e, t in zip(found.ends, (truth_a, truth_b)))
+        rows.append(["symmetric matching of two raw scans", wall, cpu, ends])
+    if "extrapolation" not in skip:
+        a, b = workflows.KnownCode(codes[0]), workflows.KnownCode(codes[0] + 0.1 * (codes[1] - codes[0]))
+        found, wall, cpu = timed(lambda: workflows.extrapolate(basis, a, b, 10, options))
+        rep = found.shooting
+        rows.append(["extrapolation, 10 frames", wall, cpu,
+                     f"{rep.refinements} refinements (steps per frame up to {max(rep.substeps)})"])
+    if "random" not in skip:
+        bodies, wall, cpu = timed(lambda: workflows.random_bodies(basis, 20, 3, options))
+        rows.append(["20 random bodies", wall, cpu, f"{bodies.replaced} draws replaced"])
+    return rows
+
+
+def paper_rows(options, resolution):
+    """The paper-scale registration and interpolation (``bench.registration_speed``'s problem)."""
+    from bench.body_data import body_basis, body_scan
+
+    basis = body_basis("user_speed")
+    rng = np.random.default_rng(3)
+    truth = rng.normal(size=basis.n_fields) * 0.15
+    sv, sf = body_scan(basis, truth)
+    found, wall, cpu = timed(lambda: workflows.code_of(basis, workflows.Scan(sv, sf), options))
+    rows = [[f"registration, {len(sf)}-face scan", wall, cpu,
+             error_text(basis, found.registration.vertices, basis.template + np.tensordot(truth, basis.fields, 1),
+                        1.0)]]
+    a0, a1 = (workflows.KnownCode(c) for c in rng.normal(size=(2, basis.n_fields)) * 0.5)
+    path, wall, cpu = timed(lambda: workflows.path_between(basis, a0, a1, 24, options))
+    rows.append(["interpolation, known codes, T = 24", wall, cpu, f"distance {path.distance:.4g}"])
+    return rows
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--basis", default="humanoid")
+    parser.add_argument("--paper", action="store_true", help="add the paper-scale problem (needs ../shared/data)")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--resolution", type=float, default=0.009,
+                        help="scan remeshing pitch (share of the size; 0.009 gives ~50k faces on the humanoid)")
+    parser.add_argument("--skip", nargs="*", default=(), choices=TASKS)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    options = workflows.Options(device=args.device)
+    basis = basis_io.load_basis(args.basis)
+    header = ["task", "wall s", "CPU s", "accuracy / outcome"]
+    text = (f"# What a user runs: basis '{basis.name}', device {args.device}, torch threads {args.threads}\n\n"
+            + markdown_table(header, user_rows(basis, options, set(args.skip), args.resolution), "{:.1f}"))
+    if args.paper:
+        text += "\n\n## Paper scale\n\n" + markdown_table(header, paper_rows(options, args.resolution), "{:.1f}")
+    report(f"user_speed_{basis.name}_{args.device}", text)
+
+
+if __name__ == "__main__":
+    main()
