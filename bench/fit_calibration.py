@@ -8,7 +8,7 @@ distribution, and a torus of the template's size registered the same way shows w
 shape scores. ``--write`` stores the threshold (FACTOR x the held-out 95th percentile) in the
 basis card (``fit_check``), which ``register`` then uses to flag a poor fit.
 
-    python -m bench.fit_calibration --basis deformables --scans 8 [--write] [--threads 2]
+    python -m bench.fit_calibration --basis deformables --scans 8 [--write] [--threads 2] [--device cuda]
 """
 
 import argparse
@@ -32,16 +32,18 @@ def main():
     parser.add_argument("--seed", type=int, default=100, help="first seed (held out: the build never uses them)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--write", action="store_true", help="store the threshold in the basis card")
+    parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     basis = basis_io.load_basis(args.basis)
-    bodies = workflows.random_bodies(basis, args.scans, args.seed, shoot_steps=4)
+    options = workflows.Options(device=args.device)
+    bodies = workflows.random_bodies(basis, args.scans, args.seed, options, shoot_steps=4)
     rows, residuals = [], []
     for k, code in enumerate(bodies.codes):
         truth = basis.template + np.tensordot(code, basis.fields, axes=1)
         scan_v, scan_f, _ = simulate_scan(truth, basis.faces, seed=args.seed + k)
         t0 = time.perf_counter()
-        res = registration.register(basis, scan_v, scan_f)
+        res = registration.register(basis, scan_v, scan_f, device=args.device)
         residuals.append(res.residual)
         rows.append([f"held-out body {k}", len(scan_f), res.residual, time.perf_counter() - t0])
         print(f"body {k}: residual {res.residual:.4g} ({rows[-1][-1]:.0f} s)", flush=True)
@@ -49,7 +51,7 @@ def main():
     center = basis.template.mean(0)
     radius = np.sqrt(((basis.template - center) ** 2).sum(1).mean())
     torus_v, torus_f, _ = simulate_scan(center + radius * u / np.sqrt((u ** 2).sum(1).mean()), faces, seed=args.seed)
-    foreign = registration.register(basis, torus_v, torus_f).residual
+    foreign = registration.register(basis, torus_v, torus_f, device=args.device).residual
     rows.append(["a torus (a shape no basis here makes)", len(torus_f), foreign, float("nan")])
     p95 = float(np.percentile(residuals, 95))
     threshold = FACTOR * p95

@@ -9,7 +9,7 @@ correction is below it. The same shots at 2 and 4 substeps per frame give the ti
 error next to it, and the largest change of metric speed between consecutive steps
 (``ShootingReport.max_speed_change``) at each resolution, which chooses ``shooting.SPEED_TOL``.
 
-    python -m bench.shooting_tolerance [--basis humanoid] [--seeds 8] [--steps 8] [--threads 2]
+    python -m bench.shooting_tolerance [--basis humanoid] [--seeds 8] [--steps 8] [--threads 2] [--device cuda]
 """
 
 import argparse
@@ -25,10 +25,10 @@ from bareesa.geodesics import decode_path
 TOLERANCES = (1e-2, 1e-3, 1e-4, 1e-6)
 
 
-def shot(basis, velocity, steps, tol, substeps=1):
+def shot(basis, velocity, steps, tol, substeps=1, device="cpu"):
     """Frames (steps + 1, N, 3) of the geodesic from the template, every step solved to ``tol`` at a fixed
     time resolution (no refinement), and its report."""
-    t, f, h = basis.tensors()
+    t, f, h = basis.tensors(device=device)
     alpha1 = velocity / steps
     path, rep = shooting.extrapolate(t, f, h, np.zeros_like(velocity), alpha1, basis.weights, steps - 1, tol=tol,
                                      accept_tol=max(tol, 1e-6), substeps=substeps, max_substeps=substeps,
@@ -42,6 +42,7 @@ def main():
     parser.add_argument("--seeds", type=int, default=8)
     parser.add_argument("--steps", type=int, default=8)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     basis = basis_io.load_basis(args.basis)
@@ -54,7 +55,7 @@ def main():
         v = statistics.sample_velocities(dist, basis.groups, 1, seed)[0]
         t0 = time.perf_counter()
         try:
-            ref, rep = shot(basis, v, args.steps, 1e-9)
+            ref, rep = shot(basis, v, args.steps, 1e-9, device=args.device)
         except shooting.ShootingFailed as err:
             failed.append(f"seed {seed}: {err}")
             print(f"seed {seed}: reference failed: {err}", flush=True)
@@ -62,13 +63,13 @@ def main():
         speed[1].append(rep.max_speed_change)
         for tol in TOLERANCES:
             try:
-                frames, _ = shot(basis, v, args.steps, tol)
+                frames, _ = shot(basis, v, args.steps, tol, device=args.device)
                 rows_tol[tol].append(np.abs(frames - ref).max())
             except shooting.ShootingFailed as err:
                 failed.append(f"seed {seed}, tol {tol:g}: {err}")
         for k in (2, 4):
             try:
-                frames, rep_k = shot(basis, v, args.steps, 1e-9, substeps=k)
+                frames, rep_k = shot(basis, v, args.steps, 1e-9, substeps=k, device=args.device)
                 rows_time[k].append(np.abs(frames - ref).max())
                 speed[k].append(rep_k.max_speed_change)
             except shooting.ShootingFailed as err:
