@@ -112,7 +112,13 @@ def step_lengths(template, faces, fields, path, weights):
     return np.sqrt(np.clip(steps.detach().cpu().numpy() / dt, 0, None))
 
 
-def resample_path(template, faces, fields, path, weights, n_frames, refine=16):
+#: Linear sub-steps per step when measuring a path's arc length for resampling. Measured on humanoid
+#: geodesics (10 steps, 24 frames): 4 sub-steps move the frames by at most 0.012 mm from 16 sub-steps,
+#: 2 by 0.045 mm, 1 by 0.19 mm, while the cost falls with the number of meshes evaluated (16: ~4 s).
+RESAMPLE_REFINE = 4
+
+
+def resample_path(template, faces, fields, path, weights, n_frames, refine=RESAMPLE_REFINE):
     """Resample a latent path to n_frames at constant metric speed: (T, P) -> (n_frames, P).
 
     Each step is first split into ``refine`` linear sub-steps so that the arc
