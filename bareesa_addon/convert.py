@@ -5,10 +5,12 @@ Codes live on an object as the values of one shape key per basis field (named
 ``<group>_<index:03d>``, relative to ``Basis``), so that Blender's own shape-key
 mix *is* the decoder F(alpha) = template + sum_i alpha_i h_i.
 
-Blender caps shape-key sliders at +-10. When codes are larger, an object's field
-keys hold template + k h_i with a key scale k (a power of two, stored as the
-custom property ``bareesa_key_scale``) and the values are alpha_i / k; the mix
-is the same decoder. k is 1 whenever the codes fit, so values then *are* the code.
+Each field key holds template + k_i h_i with a key scale k_i (custom property
+``bareesa_key_scale``, one per key) and its value is alpha_i / k_i; the mix is the
+same decoder. The operators choose k_i = one standard deviation of the basis'
+training codes for that field, so a slider at 1 is one typical step, and the slider
+range is the training range (Blender caps sliders at +-10: a key whose values would
+pass that gets a larger scale).
 """
 
 import math
@@ -23,7 +25,10 @@ PROP_BASIS_NAME = "bareesa_basis_name"  # the basis' own name (for display)
 PROP_SCAN = "bareesa_scan"              # the scan an object was registered from
 PROP_VARIFOLD = "bareesa_varifold"
 PROP_CHAMFER = "bareesa_chamfer"
-PROP_KEY_SCALE = "bareesa_key_scale"    # field keys hold template + k h_i; values are code / k
+PROP_RESIDUAL = "bareesa_fit_residual"  # mean scan-to-surface distance over the basis' size
+PROP_POOR_FIT = "bareesa_poor_fit"      # the residual is far above the basis' own (its card's fit_check)
+PROP_KEY_SCALE = "bareesa_key_scale"    # per field key: it holds template + k_i h_i; its value is code_i / k_i
+PROP_RANGE = "bareesa_training_stds"    # how far a result's codes go from the training codes (in std)
 #: Blender limits shape-key sliders to [-10, 10]; larger codes use a key scale (see above).
 SLIDER_LIMIT = 10.0
 #: A code beyond this is a diverged solve, not a shape.
@@ -84,55 +89,85 @@ def new_mesh_object(name, verts, faces, collection, smooth=True):
     return obj
 
 
-def add_field_keys(obj, template, fields, names, scale=1.0):
-    """Shape keys 'Basis' (= template) and one per field (template + scale h_i), sliders at +-SLIDER_LIMIT."""
+def key_scales(obj, n=None):
+    """The object's key scales k_i, one per field key (values are code_i / k_i): -> (P,).
+
+    Older files store one scale for all keys (a float); it is broadcast to ``n`` keys.
+    """
+    stored = obj.get(PROP_KEY_SCALE, 1.0)
+    try:
+        scales = np.array(list(stored), dtype=np.float64)
+    except TypeError:
+        scales = np.full(n if n is not None else 1, float(stored))
+    return scales
+
+
+def _set_slider(block, lo, hi):
+    lo, hi = max(-SLIDER_LIMIT, float(lo)), min(SLIDER_LIMIT, float(hi))
+    block.slider_max = SLIDER_LIMIT  # slider_min may not exceed slider_max: widen first
+    block.slider_min = min(lo, hi - 1e-3)
+    block.slider_max = hi
+
+
+def add_field_keys(obj, template, fields, names, scales=1.0, ranges=None):
+    """Shape keys 'Basis' (= template) and one per field (template + k_i h_i).
+
+    scales: (P,) or a float, the key scales k_i (value = code / k_i); ranges: (P, 2) slider
+    ranges in value units (None: +-SLIDER_LIMIT).
+    """
     template = np.asarray(template, dtype=np.float64)
+    fields = np.asarray(fields, dtype=np.float64)
+    scales = np.broadcast_to(np.asarray(scales, dtype=np.float64), (len(names),))
+    if ranges is None:
+        ranges = np.tile([-SLIDER_LIMIT, SLIDER_LIMIT], (len(names), 1))
     basis_key = obj.shape_key_add(name="Basis", from_mix=False)
     basis_key.data.foreach_set("co", template.ravel())
-    for name, field in zip(names, np.asarray(fields, dtype=np.float64)):
+    for name, field, k, (lo, hi) in zip(names, fields, scales, ranges):
         key = obj.shape_key_add(name=name, from_mix=False)
-        key.data.foreach_set("co", (template + scale * field).ravel())
-        key.slider_min, key.slider_max = -SLIDER_LIMIT, SLIDER_LIMIT
+        key.data.foreach_set("co", (template + k * field).ravel())
+        _set_slider(key, lo, hi)
         key.relative_key = basis_key
     obj.data.shape_keys.use_relative = True
-    obj[PROP_KEY_SCALE] = float(scale)
+    obj[PROP_KEY_SCALE] = [float(k) for k in scales]
     obj.data.update()
 
 
-def key_scale(obj):
-    """The object's key scale k (values are code / k)."""
-    return float(obj.get(PROP_KEY_SCALE, 1.0))
-
-
 def needed_scale(codes):
-    """Smallest power-of-two key scale that keeps codes within 90% of the slider range (1 when they fit)."""
+    """Smallest power-of-two factor that keeps values within 90% of Blender's slider limit (1 when they fit)."""
     m = float(np.abs(np.asarray(codes, dtype=np.float64)).max(initial=0.0))
     limit = 0.9 * SLIDER_LIMIT
     return 1.0 if m <= limit else float(2.0 ** math.ceil(math.log2(m / limit)))
 
 
 def fit_range(obj, names, template, fields, codes):
-    """Enlarge the object's key scale if ``codes`` would not fit its sliders (keys, values and keyframes rescaled)."""
-    old, new = key_scale(obj), needed_scale(codes)
-    if new <= old:
-        return
+    """Make the field keys able to hold ``codes`` (P,) or (T, P): a slider range that covers the values
+    (up to Blender's +-10), and a larger key scale for a key whose values would pass +-10 (its key,
+    value and keyframes rescaled, so the mix is unchanged)."""
+    codes = np.atleast_2d(np.asarray(codes, dtype=np.float64))
     blocks = obj.data.shape_keys.key_blocks
-    ratio = old / new
-    values = {n: blocks[n].value for n in names}
-    for name, field in zip(names, np.asarray(fields, dtype=np.float64)):
-        blocks[name].data.foreach_set("co", (np.asarray(template) + new * field).ravel())
-        blocks[name].value = values[name] * ratio
+    scales = key_scales(obj, len(names))
     curves = fcurves(obj.data.shape_keys)
-    for name in names:
-        fc = curves.get(_data_path(name))
-        if fc is None:
-            continue
-        for point in fc.keyframe_points:
-            point.co[1] *= ratio
-            point.handle_left[1] *= ratio
-            point.handle_right[1] *= ratio
-        fc.update()
-    obj[PROP_KEY_SCALE] = new
+    fields = np.asarray(fields, dtype=np.float64)
+    for j, name in enumerate(names):
+        block = blocks[name]
+        factor = needed_scale(codes[:, j] / scales[j])
+        if factor > 1.0:
+            ratio, value = 1.0 / factor, block.value
+            scales[j] *= factor
+            block.data.foreach_set("co", (np.asarray(template) + scales[j] * fields[j]).ravel())
+            block.value = value * ratio
+            fc = curves.get(_data_path(name))
+            if fc is not None:
+                for point in fc.keyframe_points:
+                    point.co[1] *= ratio
+                    point.handle_left[1] *= ratio
+                    point.handle_right[1] *= ratio
+                fc.update()
+        values = codes[:, j] / scales[j]
+        lo, hi = min(block.slider_min, math.floor(values.min())), max(block.slider_max, math.ceil(values.max()))
+        if (lo, hi) != (block.slider_min, block.slider_max):
+            _set_slider(block, lo, hi)
+    obj[PROP_KEY_SCALE] = [float(k) for k in scales]
     obj.data.update()
 
 
@@ -153,25 +188,35 @@ def check_code(code, what="the result"):
     return code
 
 
-def _values(obj, code):
-    values = check_code(code) / key_scale(obj)
+def _values(obj, names, code):
+    """Values (code / k_i) of codes (P,) or (T, P), widening a key's slider range to hold them
+    (Blender clamps values to it); refused when a value would pass Blender's +-10 (see fit_range)."""
+    code = check_code(code)
+    values = code / key_scales(obj, len(names))
     if np.abs(values).max(initial=0.0) > SLIDER_LIMIT * (1 + 1e-6):
         raise ConversionError(f"a code of {np.abs(code).max():.3g} does not fit the shape keys of '{obj.name}' "
-                              f"(key scale {key_scale(obj):g}); nothing was written")
+                              "(their key scales); nothing was written")
+    blocks = obj.data.shape_keys.key_blocks
+    flat = np.atleast_2d(values)
+    for j, name in enumerate(names):
+        lo, hi = flat[:, j].min(initial=0.0), flat[:, j].max(initial=0.0)
+        block = blocks[name]
+        if lo < block.slider_min or hi > block.slider_max:
+            _set_slider(block, min(block.slider_min, math.floor(lo)), max(block.slider_max, math.ceil(hi)))
     return values
 
 
 def set_code(obj, names, code):
-    """Shape-key values <- code (P,) (divided by the object's key scale)."""
+    """Shape-key values <- code (P,) (divided by the keys' scales)."""
     blocks = obj.data.shape_keys.key_blocks
-    for name, value in zip(names, _values(obj, code)):
+    for name, value in zip(names, _values(obj, names, code)):
         blocks[name].value = float(value)
 
 
 def get_code(obj, names):
-    """Shape-key values -> code (P,) (the current, possibly animated, values times the key scale)."""
+    """Shape-key values -> code (P,) (the current, possibly animated, values times the key scales)."""
     blocks = obj.data.shape_keys.key_blocks
-    return key_scale(obj) * np.array([blocks[n].value for n in names], dtype=np.float64)
+    return key_scales(obj, len(names)) * np.array([blocks[n].value for n in names], dtype=np.float64)
 
 
 def _data_path(name):
@@ -179,10 +224,15 @@ def _data_path(name):
 
 
 def fcurves(id_data):
-    """{data_path: FCurve} of the action assigned to an ID (Blender 4.2 actions and 4.4+ slotted ones)."""
+    """{data_path: FCurve} of the action assigned to an ID (one curve per path: for scalar properties)."""
+    return {fc.data_path: fc for fc in all_fcurves(id_data)}
+
+
+def all_fcurves(id_data):
+    """Every FCurve of the action assigned to an ID (Blender 4.2 actions and 4.4+ slotted ones): -> list."""
     anim = id_data.animation_data
     if anim is None or anim.action is None:
-        return {}
+        return []
     curves = None
     slot = getattr(anim, "action_slot", None)
     if slot is not None:
@@ -195,7 +245,7 @@ def fcurves(id_data):
             curves = bag.fcurves if bag is not None else []
     if curves is None:
         curves = anim.action.fcurves
-    return {fc.data_path: fc for fc in curves}
+    return list(curves)
 
 
 def keyframe_codes(obj, names, frames, codes, replace=True):
@@ -204,7 +254,7 @@ def keyframe_codes(obj, names, frames, codes, replace=True):
     replace=True rebuilds each curve from these keys only; otherwise keys are added to existing curves.
     """
     frames = np.asarray(frames, dtype=np.float64)
-    codes = _values(obj, np.asarray(codes, dtype=np.float64))
+    codes = np.atleast_2d(_values(obj, names, np.asarray(codes, dtype=np.float64)))
     key = obj.data.shape_keys
     blocks = key.key_blocks
     curves = fcurves(key)
@@ -243,7 +293,7 @@ def code_at_frame(obj, names, frame):
     """Code of an object at a frame, from its shape-key animation (static values where not animated)."""
     curves = fcurves(obj.data.shape_keys)
     blocks = obj.data.shape_keys.key_blocks
-    return key_scale(obj) * np.array([curves[_data_path(n)].evaluate(frame) if _data_path(n) in curves
+    return key_scales(obj, len(names)) * np.array([curves[_data_path(n)].evaluate(frame) if _data_path(n) in curves
                                       else blocks[n].value for n in names], dtype=np.float64)
 
 
@@ -265,13 +315,19 @@ def blend_matrices(m0, m1, t):
 
 
 def keyframe_transforms(obj, frames, matrices):
-    """Keyframe location, quaternion rotation and scale of ``obj`` from world matrices (no parent)."""
+    """Keyframe location, quaternion rotation and scale of ``obj`` from world matrices (no parent),
+    with linear interpolation (Blender's default Bezier easing would stall and snap per-frame keys)."""
     obj.rotation_mode = "QUATERNION"
     for frame, m in zip(frames, matrices):
         loc, rot, scale = m.decompose()
         obj.location, obj.rotation_quaternion, obj.scale = loc, rot, scale
         for path in ("location", "rotation_quaternion", "scale"):
             obj.keyframe_insert(path, frame=float(frame))
+    for fc in all_fcurves(obj):
+        if fc.data_path in ("location", "rotation_quaternion", "scale"):
+            for point in fc.keyframe_points:
+                point.interpolation = "LINEAR"
+            fc.update()
     obj.matrix_world = matrices[0]
 
 

@@ -157,6 +157,7 @@ def run_demo(out, basis_name="humanoid", schedule="FAST", frames=24, seed=0, fig
         convert.set_code(actor, solver.field_names(basis), code)
         s.identity_group = "shape" if "shape" in basis.groups else next(iter(basis.groups))
         assert bpy.ops.bareesa.transfer_motion(source=path_obj.name, target=actor.name) == {"FINISHED"}
+        actor = bpy.context.active_object  # the motion is a new object; the identity is left as it was
 
     # 5. six random bodies
     s.count, s.seed = 6, seed

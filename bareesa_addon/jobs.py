@@ -6,7 +6,8 @@ core, never bpy) and ``apply`` (main thread: write the results). ``SolveOperator
 runs ``solve`` in a thread polled by a modal timer when invoked from the
 interface, and synchronously from scripts and in background mode. Nothing is
 written before ``solve`` succeeds, so a cancelled or failed solve leaves the
-scene exactly as it was; the operator is undoable as one step.
+scene exactly as it was; the result is one undo step (pushed after the apply when it ran
+from the modal timer).
 """
 
 import sys
@@ -101,6 +102,16 @@ def is_user_error(err):
         return False
 
 
+def push_undo(message):
+    """One undo step for what a background job's apply wrote (the modal timer's apply is not one by itself).
+
+    bpy as a Python module (headless, no window) has no undo stack (no ``bpy.ed``): nothing to push.
+    """
+    ed = getattr(bpy, "ed", None)
+    if ed is not None:
+        ed.undo_push(message=message)
+
+
 def _status(context, text):
     workspace = getattr(context, "workspace", None)
     if workspace is not None:
@@ -169,7 +180,10 @@ class SolveOperator:
         _status(context, None)
         if job in RUNNING:
             RUNNING.remove(job)
-        return self._finish(context, self._task, job)
+        outcome = self._finish(context, self._task, job)
+        if outcome == {"FINISHED"}:
+            push_undo(f"BaRe-ESA: {self._task.title}")
+        return outcome
 
     def _finish(self, context, task, job):
         err = job.error

@@ -3,8 +3,25 @@
 import bpy
 
 from . import jobs
-from .convert import PROP_BASIS, PROP_BASIS_NAME, PROP_CHAMFER, PROP_VARIFOLD
+from .convert import PROP_BASIS, PROP_BASIS_NAME, PROP_CHAMFER, PROP_POOR_FIT, PROP_RANGE, PROP_VARIFOLD
+from .operators.common import TRAINING_STDS
 from .preferences import dependency_status
+
+
+def length_text(context, value):
+    """A length (metres, scene scale 1) in the scene's units, as Blender writes it (e.g. '2.3 mm')."""
+    units = context.scene.unit_settings
+    if units.system == "NONE":
+        return f"{value:.3g}"
+    return bpy.utils.units.to_string(units.system, "LENGTH", value / units.scale_length, precision=3,
+                                     split_unit=units.use_separate)
+
+
+def split(layout):
+    """Blender's property layout: labels left of the fields, no animation decorators: -> layout."""
+    layout.use_property_split = True
+    layout.use_property_decorate = False
+    return layout
 
 
 class _Section:
@@ -20,7 +37,7 @@ class BAREESA_PT_main(_Section, bpy.types.Panel):
     bl_idname = "BAREESA_PT_main"
 
     def draw(self, context):
-        layout = self.layout
+        layout = split(self.layout)
         status = dependency_status()
         missing = [name for name, ok in status.items() if not ok and name != "pykeops"]
         if missing:
@@ -33,8 +50,13 @@ class BAREESA_PT_main(_Section, bpy.types.Panel):
         if obj is not None and PROP_BASIS in obj:
             box = layout.box()
             box.label(text=f"{obj.name}: basis {obj.get(PROP_BASIS_NAME, obj[PROP_BASIS])}", icon="SHAPEKEY_DATA")
-            if PROP_VARIFOLD in obj:
-                box.label(text=f"varifold {obj[PROP_VARIFOLD]:.3g}   Chamfer {obj[PROP_CHAMFER]:.3g}")
+            if PROP_CHAMFER in obj:
+                box.label(text=f"Chamfer {length_text(context, obj[PROP_CHAMFER])}   "
+                               f"varifold {obj.get(PROP_VARIFOLD, 0.0):.3g}")
+            if obj.get(PROP_POOR_FIT, False):
+                box.label(text="Poor fit: far from the scan for this basis", icon="ERROR")
+            if obj.get(PROP_RANGE, 0.0) > TRAINING_STDS:
+                box.label(text=f"Outside the training range ({obj[PROP_RANGE]:.1f} std)", icon="ERROR")
 
 
 class BAREESA_PT_basis(_Section, bpy.types.Panel):
@@ -43,12 +65,13 @@ class BAREESA_PT_basis(_Section, bpy.types.Panel):
 
     def draw(self, context):
         s = context.scene.bareesa
-        col = self.layout.column(align=True)
+        layout = split(self.layout)
+        col = layout.column()
         col.prop(s, "basis")
         col.prop(s, "metric")
         if s.metric == "CUSTOM":
             col.prop(s, "metric_custom")
-        self.layout.operator("bareesa.load_template", icon="OUTLINER_OB_MESH")
+        layout.operator("bareesa.load_template", icon="OUTLINER_OB_MESH")
 
 
 class BAREESA_PT_register(_Section, bpy.types.Panel):
@@ -57,14 +80,13 @@ class BAREESA_PT_register(_Section, bpy.types.Panel):
 
     def draw(self, context):
         s = context.scene.bareesa
-        col = self.layout.column(align=True)
+        layout = split(self.layout)
+        col = layout.column()
         col.prop(s, "schedule")
         col.prop(s, "prealign")
         n = sum(o.type == "MESH" for o in context.selected_objects)
-        row = self.layout.row()
-        row.enabled = n > 0
-        row.operator("bareesa.register_scan", text=f"Register {n} Selected" if n else "Select Scans",
-                     icon="MOD_SHRINKWRAP")
+        layout.operator("bareesa.register_scan", text=f"Register {n} Selected" if n else "Register Selected",
+                        icon="MOD_SHRINKWRAP")
 
 
 class BAREESA_PT_paths(_Section, bpy.types.Panel):
@@ -73,23 +95,26 @@ class BAREESA_PT_paths(_Section, bpy.types.Panel):
 
     def draw(self, context):
         s = context.scene.bareesa
-        layout = self.layout
-        col = layout.column(align=True)
+        layout = split(self.layout)
+        col = layout.column()
         col.prop(s, "object_a")
         col.prop(s, "object_b")
-        col = layout.column(align=True)
-        row = col.row(align=True)
-        row.prop(s, "steps")
-        row.prop(s, "geodesic_iterations")
-        row = col.row(align=True)
-        row.prop(s, "frame_start")
-        row.prop(s, "frame_end")
+        col = layout.column()
+        col.prop(s, "steps")
+        col.prop(s, "geodesic_iterations")
+        col.prop(s, "anchor")
+        col = layout.column(heading="Frames")
+        col.prop(s, "use_frame_range")
+        sub = col.column(align=True)
+        sub.enabled = s.use_frame_range
+        sub.prop(s, "frame_start")
+        sub.prop(s, "frame_end", text="End")
         col.prop(s, "make_collection")
         layout.operator("bareesa.interpolate", icon="IPO_EASE_IN_OUT")
-        col = layout.column(align=True)
-        row = col.row(align=True)
-        row.prop(s, "extrapolate_steps")
-        row.prop(s, "extrapolate_spacing")
+        col = layout.column()
+        col.prop(s, "extrapolate_source")
+        col.prop(s, "extrapolate_steps")
+        col.prop(s, "extrapolate_spacing")
         layout.operator("bareesa.extrapolate", icon="FORWARD")
 
 
@@ -100,12 +125,13 @@ class BAREESA_PT_motion(_Section, bpy.types.Panel):
 
     def draw(self, context):
         s = context.scene.bareesa
-        col = self.layout.column(align=True)
+        layout = split(self.layout)
+        col = layout.column()
         col.prop(s, "motion_source")
         col.prop(s, "motion_collection")
         col.prop(s, "motion_target")
         col.prop(s, "identity_group")
-        self.layout.operator("bareesa.transfer_motion", icon="ARMATURE_DATA")
+        layout.operator("bareesa.transfer_motion", icon="ARMATURE_DATA")
 
 
 class BAREESA_PT_random(_Section, bpy.types.Panel):
@@ -115,13 +141,13 @@ class BAREESA_PT_random(_Section, bpy.types.Panel):
 
     def draw(self, context):
         s = context.scene.bareesa
-        col = self.layout.column(align=True)
-        row = col.row(align=True)
-        row.prop(s, "count")
-        row.prop(s, "seed")
+        layout = split(self.layout)
+        col = layout.column()
+        col.prop(s, "count")
+        col.prop(s, "seed")
         col.prop(s, "fit_collection")
         col.prop(s, "shoot_steps")
-        self.layout.operator("bareesa.generate_random", icon="COMMUNITY")
+        layout.operator("bareesa.generate_random", icon="COMMUNITY")
 
 
 class BAREESA_PT_build(_Section, bpy.types.Panel):
@@ -131,14 +157,14 @@ class BAREESA_PT_build(_Section, bpy.types.Panel):
 
     def draw(self, context):
         s = context.scene.bareesa
-        col = self.layout.column(align=True)
+        layout = split(self.layout)
+        col = layout.column()
         col.prop(s, "build_source")
         col.prop(s, "build_collection")
         col.prop(s, "build_name")
-        row = col.row(align=True)
-        row.prop(s, "build_group")
-        row.prop(s, "build_components")
-        self.layout.operator("bareesa.build_basis", icon="NODETREE")
+        col.prop(s, "build_group")
+        col.prop(s, "build_components")
+        layout.operator("bareesa.build_basis", icon="NODETREE")
 
 
 class BAREESA_PT_distance(_Section, bpy.types.Panel):
@@ -148,10 +174,10 @@ class BAREESA_PT_distance(_Section, bpy.types.Panel):
 
     def draw(self, context):
         s = context.scene.bareesa
-        layout = self.layout
+        layout = split(self.layout)
         if s.distance >= 0:
             layout.label(text=f"{s.distance_pair}: {s.distance:.4g}", icon="DRIVER_DISTANCE")
-        col = layout.column(align=True)
+        col = layout.column()
         col.prop(s, "distance_collection")
         col.prop(s, "distance_csv")
         layout.operator("bareesa.distance", icon="DRIVER_DISTANCE")

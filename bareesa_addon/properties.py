@@ -1,8 +1,7 @@
 """Scene settings of the BaRe-ESA panel (``scene.bareesa``); they are saved with the .blend."""
 
 import bpy
-from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
-                       StringProperty)
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
 from .solver import SCHEDULE_PRESETS
 
@@ -11,6 +10,12 @@ METRIC_PRESETS = (
     ("BODY", "Body", "The paper's body weights (1, 1000, 100, 1, 1, 1)"),
     ("FACE", "Face", "The paper's face weights (1, 10, 10, 10, 1, 1)"),
     ("CUSTOM", "Custom", "Six weights a0, a1, b1, c1, d1, a2"),
+)
+
+EXTRAPOLATE_SOURCES = (
+    ("AUTO", "Auto", "Two objects when two are chosen or selected, else the active object's keyframes"),
+    ("OBJECTS", "Two Objects", "From the start object to the end object"),
+    ("KEYFRAMES", "Keyframes", "The last two shape-key keyframes of the active registered object"),
 )
 
 
@@ -30,8 +35,9 @@ class BareEsaSettings(bpy.types.PropertyGroup):
     metric_custom: StringProperty(name="Weights", default="1,1000,100,1,1,1",
                                   description="a0,a1,b1,c1,d1,a2 for the custom metric")
     # Register
-    schedule: EnumProperty(name="Schedule", items=SCHEDULE_PRESETS, default="PAPER",
-                           description="Multiscale registration schedule")
+    schedule: EnumProperty(name="Schedule", items=SCHEDULE_PRESETS, default="FAST",
+                           description="Multiscale registration schedule (Fast: what the demo uses; Paper: slower, "
+                                       "closer fits)")
     prealign: BoolProperty(name="Pre-align", default=True,
                            description="Find the scan's rotation, position and scale first (off: the scan is "
                                        "already in the template's frame)")
@@ -45,8 +51,15 @@ class BareEsaSettings(bpy.types.PropertyGroup):
     geodesic_iterations: IntProperty(name="Iterations", default=200, min=1, max=5000,
                                      description="Most L-BFGS iterations of a geodesic solve (fewer: faster, "
                                                  "less exact in-betweens)")
-    frame_start: IntProperty(name="Start", default=1, description="First frame of the keyframed path")
-    frame_end: IntProperty(name="End", default=25, description="Last frame of the keyframed path")
+    use_frame_range: BoolProperty(name="Own Frame Range", default=False,
+                                  description="Use the Start and End below instead of the scene's frame range")
+    frame_start: IntProperty(name="Start", default=1, description="First frame (when Own Frame Range is on)")
+    frame_end: IntProperty(name="End", default=25, description="Last frame (when Own Frame Range is on)")
+    anchor: BoolProperty(name="Keep Body Planted", default=True,
+                         description="Keep the body's unmoving part where the straight line between the ends puts it "
+                                     "(the metric's L2 term otherwise lets the body sink ~1 cm when a limb moves)")
+    extrapolate_source: EnumProperty(name="Direction From", items=EXTRAPOLATE_SOURCES, default="AUTO",
+                                     description="What gives the direction the motion is continued in")
     make_collection: BoolProperty(name="Also as meshes", default=False,
                                   description="Also bake every frame of the path as a mesh in a new collection")
     extrapolate_steps: IntProperty(name="New steps", default=4, min=1, max=200,

@@ -50,6 +50,7 @@ def scene(tiny, tmp_path, monkeypatch):
     s.basis = str(tiny[1])
     s.schedule = "FAST"
     s.steps = 4
+    s.use_frame_range = True  # the tests set the panel's own range (the default follows the scene's)
     s.frame_start, s.frame_end = 1, 6
     s.shoot_steps = 2
     yield bpy.context.scene
@@ -83,7 +84,10 @@ def mesh_verts(obj):
 
 
 def key_values(obj, names):
-    return np.array([obj.data.shape_keys.key_blocks[n].value for n in names])
+    """The code an object's field keys hold (values times the per-key scales, bareesa_addon.convert.get_code)."""
+    from bareesa_addon import convert
+
+    return convert.get_code(obj, names)
 
 
 def snapshot():

@@ -104,6 +104,7 @@ def test_interpolate_keep_body_planted_is_core_keyframe_path_with_anchor(scene, 
     # setting reaches core (what anchoring does is tested in test_geodesic and test_cli)
     seen = anchor_spy(monkeypatch, "geodesics", "keyframe_path")
     for anchor in (True, False):
+        select(bpy.data.objects["A"], bpy.data.objects["B"])  # the poll wants a selection
         assert bpy.ops.bareesa.interpolate(object_a="A", object_b="B", anchor=anchor) == {"FINISHED"}
         codes = keyed(bpy.data.objects["A_to_B"])[1]
         assert np.allclose(codes, keyframe_path(t, f, h, raw.path, basis.weights, len(codes), anchor=anchor),
@@ -129,6 +130,7 @@ def test_interpolate_two_raw_scans_by_symmetric_matching(scene, tiny):
     surface = tiny[2]
     scan_a = add_mesh("scan_a", *code_surface(surface, A, seed=4))
     scan_b = add_mesh("scan_b", *code_surface(surface, B, seed=6), location=(3.0, 0.0, 0.0))
+    select(scan_a, scan_b)  # the operator's poll wants a selection (or the panel's From and To)
     before = snapshot()
     assert bpy.ops.bareesa.interpolate(object_a="scan_a", object_b="scan_b") == {"FINISHED"}
     after = snapshot()
@@ -244,7 +246,7 @@ def test_transfer_motion_from_shape_key_animation_keeps_pose_and_target_identity
     target = registered("target", np.r_[0.1, 0.1, IDENTITY])
     scene.bareesa.frame_start, scene.bareesa.frame_end = 1, 4
     assert bpy.ops.bareesa.transfer_motion(source="dancer", target="target") == {"FINISHED"}
-    frames, codes = keyed(target)
+    frames, codes = keyed(bpy.data.objects["target_motion"])  # a new object
     assert list(frames) == [1, 2, 3, 4]
     assert np.allclose(codes, expected_motion(), atol=1e-6)
     assert scene.frame_current == 1
@@ -264,7 +266,7 @@ def test_transfer_motion_from_any_animated_mesh_evaluated_per_frame(scene, tiny)
     target = registered("target", np.r_[0.0, 0.0, IDENTITY])
     scene.bareesa.frame_start, scene.bareesa.frame_end = 1, 4
     assert bpy.ops.bareesa.transfer_motion(source="cache_like", target="target") == {"FINISHED"}
-    frames, codes = keyed(target)
+    frames, codes = keyed(bpy.data.objects["target_motion"])  # a new object
     # source frames are projected with bareesa.latent.PROJECTION_RIDGE: within its small shrinkage
     assert np.allclose(codes[0], np.r_[POSES[0], IDENTITY], atol=RIDGE_ATOL)
     assert np.allclose(codes[-1], np.r_[POSES[3], IDENTITY], atol=RIDGE_ATOL)
@@ -283,7 +285,7 @@ def test_transfer_motion_from_an_ordered_collection_of_frame_objects(scene, tiny
     registered("target", np.r_[0.0, 0.0, IDENTITY])
     scene.bareesa.frame_start = 20
     assert bpy.ops.bareesa.transfer_motion(source_collection="frames", target="target") == {"FINISHED"}
-    frames, codes = keyed(bpy.data.objects["target"])
+    frames, codes = keyed(bpy.data.objects["target_motion"])  # a new object
     assert list(frames) == [20, 21, 22, 23]
     assert np.allclose(codes, expected_motion(), atol=RIDGE_ATOL)  # ridge-projected frames
 
@@ -492,7 +494,7 @@ def test_transfer_motion_from_an_alembic_mesh_cache(scene, tiny, tmp_path):
     registered("target", np.r_[0.0, 0.0, IDENTITY])
     scene.bareesa.frame_start, scene.bareesa.frame_end = 1, 4
     assert bpy.ops.bareesa.transfer_motion(source=cache.name, target="target") == {"FINISHED"}
-    frames, codes = keyed(bpy.data.objects["target"])
+    frames, codes = keyed(bpy.data.objects["target_motion"])  # a new object
     assert list(frames) == [1, 2, 3, 4]
     assert np.allclose(codes[0], np.r_[POSES[1], IDENTITY], atol=RIDGE_ATOL)  # ridge-projected frames
     assert np.allclose(codes[-1], np.r_[POSES[2], IDENTITY], atol=RIDGE_ATOL)

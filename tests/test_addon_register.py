@@ -84,14 +84,15 @@ def test_register_scan_accepts_quads_and_several_scans(scene):
         assert np.isfinite(key_values(obj, NAMES)).all()
 
 
-def test_register_scan_refuses_non_mesh_or_empty_selection(scene, tiny):
+def test_register_scan_refuses_a_selection_without_meshes(scene, tiny):
+    # (a mesh selected with a non-mesh is registered, the other skipped: test_addon_conventions.py)
     _, _, surface = tiny
-    scan = add_mesh("scan", *code_surface(surface, ALPHA))
+    add_mesh("scan", *code_surface(surface, ALPHA))
     empty = bpy.data.objects.new("empty", None)
     scene.collection.objects.link(empty)
-    select(scan, empty)
+    select(empty)
     before = snapshot()
-    with pytest.raises(RuntimeError, match="not a mesh"):
+    with pytest.raises(RuntimeError, match="select one or more"):
         bpy.ops.bareesa.register_scan()
     select()
     with pytest.raises(RuntimeError, match="select one or more"):
@@ -161,3 +162,21 @@ def test_every_solve_operator_is_undoable(scene):
                  "GENERATE_RANDOM", "BUILD_BASIS", "DISTANCE"):
         cls = getattr(bpy.types, f"BAREESA_OT_{name.lower()}")
         assert "UNDO" in cls.bl_options and "REGISTER" in cls.bl_options
+
+
+def test_poor_fit_is_stored_on_the_object_and_reported(scene, tiny, monkeypatch):
+    # the registration's poor-fit flag (the basis card's fit_check) reaches the object and a warning
+    import bareesa.registration.multiscale as multiscale
+
+    _, _, surface = tiny
+    select(add_mesh("scan", *code_surface(surface, ALPHA)))
+    scene.bareesa.prealign = False
+    monkeypatch.setattr(multiscale, "is_poor_fit", lambda basis, residual: True)
+    assert bpy.ops.bareesa.register_scan() == {"FINISHED"}
+    reg = bpy.data.objects["scan_registered"]
+    assert reg["bareesa_poor_fit"] is True or reg["bareesa_poor_fit"] == 1
+    assert reg["bareesa_fit_residual"] > 0
+    monkeypatch.setattr(multiscale, "is_poor_fit", lambda basis, residual: False)
+    select(bpy.data.objects["scan"])
+    assert bpy.ops.bareesa.register_scan() == {"FINISHED"}
+    assert not bpy.data.objects["scan_registered.001"]["bareesa_poor_fit"]

@@ -10,7 +10,7 @@ from .. import convert as cv
 from .. import solver
 from ..jobs import SolveOperator, Task, is_user_error
 from ..preferences import user_bases_dir
-from .common import frame_range, load_basis, select_only, settings, sorted_meshes, template_object
+from .common import frame_range, load_basis, refuse, select_only, settings, sorted_meshes, template_object
 
 
 class BAREESA_OT_load_template(bpy.types.Operator):
@@ -19,6 +19,11 @@ class BAREESA_OT_load_template(bpy.types.Operator):
     bl_idname = "bareesa.load_template"
     bl_label = "Load Template"
     bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        s = getattr(context.scene, "bareesa", None)
+        return refuse(cls, None if s is not None and s.basis.strip() else "choose a basis in the Basis section")
 
     basis: StringProperty(name="Basis", default="", description="Bundled name or .npz path (empty: the panel's)")
 
@@ -48,14 +53,14 @@ def source_meshes(context, s):
         meshes = [cv.evaluated_mesh(o, depsgraph()) for o in sorted_meshes(s.build_collection)]
         return meshes, f"collection '{s.build_collection.name}'"
     cv.require_mesh(source, "animated mesh")
-    scene, current, meshes = context.scene, context.scene.frame_current, []
+    scene, current, meshes, frames = context.scene, context.scene.frame_current, [], frame_range(context)
     try:
-        for f in frame_range(context):
+        for f in frames:
             scene.frame_set(int(f))
             meshes.append(cv.evaluated_mesh(source, depsgraph()))
     finally:
         scene.frame_set(current)
-    return meshes, f"'{source.name}' frames {s.frame_start}-{s.frame_end}"
+    return meshes, f"'{source.name}' frames {frames[0]}-{frames[-1]}"
 
 
 class BAREESA_OT_build_basis(SolveOperator, bpy.types.Operator):
@@ -63,6 +68,13 @@ class BAREESA_OT_build_basis(SolveOperator, bpy.types.Operator):
 
     bl_idname = "bareesa.build_basis"
     bl_label = "Build Basis"
+
+    @classmethod
+    def poll(cls, context):
+        s, active = context.scene.bareesa, context.view_layer.objects.active
+        some = s.build_source or s.build_collection or (active is not None and active.type == "MESH")
+        return refuse(cls, None if some else "choose an animated mesh or a collection of same-topology meshes "
+                                             "(or make an animated mesh active)")
 
     filepath: StringProperty(name="File", subtype="FILE_PATH", default="",
                              description="Where to save the .npz (empty: <name>.npz in the user's bases directory)")
@@ -102,6 +114,11 @@ class BAREESA_OT_build_basis(SolveOperator, bpy.types.Operator):
             s.basis = str(path)
             obj = template_object(context, basis, str(path.resolve()), f"{basis.name}_template")
             select_only(context, [obj])
+            report = basis.provenance.get("groups", {}).get(group, {})
+            asked, built = report.get("requested", k), report.get("components", basis.n_fields)
+            if built < asked:
+                self.report({"WARNING"}, f"asked for {asked} components of '{group}', built {built}: the frames "
+                                         f"hold no more independent motion (use more, or more varied, frames)")
             return f"basis '{basis.name}' ({basis.n_fields} fields) saved to {path} and loaded"
 
         return Task("build basis", solve, apply)

@@ -15,6 +15,25 @@ def settings(context):
     return context.scene.bareesa
 
 
+def refuse(cls, reason):
+    """For ``poll``: False with the reason shown in the greyed-out button's tooltip; True without one."""
+    if reason:
+        cls.poll_message_set(reason)
+        return False
+    return True
+
+
+def selected_meshes(context):
+    return [o for o in (getattr(context, "selected_objects", None) or ()) if o.type == "MESH"]
+
+
+def own_or_panel(op, context, name, setting=None):
+    """An operator's own property when it was set (scripts, redo panel), else the panel's setting."""
+    if op.properties.is_property_set(name):
+        return getattr(op, name)
+    return getattr(settings(context), setting or name)
+
+
 def workflows():
     """The solver's ``workflows`` module (what the CLI calls too)."""
     return solver.module("workflows")
@@ -26,6 +45,17 @@ def basis_reference(reference):
     if reference.endswith(".npz") or "/" in reference or "\\" in reference:
         return str(Path(bpy.path.abspath(reference)).resolve())
     return reference
+
+
+def output_path(path, what):
+    """An absolute path to write to; a Blender-relative '//' path needs a saved .blend file."""
+    path = (path or "").strip()
+    if not path:
+        raise cv.ConversionError(f"choose a file for the {what}")
+    if path.startswith("//") and not bpy.data.filepath:
+        raise cv.ConversionError(f"the {what} path '{path}' is relative to the .blend file, which is not saved: "
+                                 "save the file first or choose an absolute path")
+    return Path(bpy.path.abspath(path)).resolve()
 
 
 def load_basis(reference):
@@ -95,29 +125,66 @@ def object_input(context, obj, basis):
     return wf.Scan(*cv.evaluated_mesh(obj, context.evaluated_depsgraph_get()))
 
 
-def typical_code_size(basis):
-    """Largest code magnitude the basis' stored distribution makes likely (mean + 3 std); 0 without one."""
-    size = 0.0
-    for group in basis.groups:
+#: The training range of a code: mean +- this many standard deviations of the basis' training codes
+TRAINING_STDS = 4.0
+
+
+def training_stats(basis):
+    """Mean and standard deviation of each coefficient under the basis' stored distribution (its
+    ``gmm_<group>_*`` extras, the mixture of its training codes): -> (mean (P,), std (P,)), NaN
+    for coefficients of a group without one."""
+    mean, std = np.full(basis.n_fields, np.nan), np.full(basis.n_fields, np.nan)
+    for group, (a, b) in basis.groups.items():
         means, covs = basis.extras.get(f"gmm_{group}_means"), basis.extras.get(f"gmm_{group}_covariances")
-        if means is not None and covs is not None:
-            std = np.sqrt(np.clip(np.diagonal(np.asarray(covs), axis1=-2, axis2=-1), 0, None))
-            size = max(size, float((np.abs(means) + 3 * std).max()))
-    return size
+        if means is None or covs is None:
+            continue
+        means = np.atleast_2d(np.asarray(means, dtype=np.float64))
+        covs = np.asarray(covs, dtype=np.float64)
+        var_k = np.diagonal(covs, axis1=-2, axis2=-1) if covs.ndim == 3 else np.broadcast_to(covs, means.shape)
+        w = np.asarray(basis.extras.get(f"gmm_{group}_weights", np.full(len(means), 1 / len(means))), float)
+        m = w @ means
+        mean[a:b] = m
+        std[a:b] = np.sqrt(np.clip(w @ (var_k + means ** 2) - m ** 2, 0, None))
+    return mean, std
+
+
+def training_excess(basis, codes):
+    """How far codes (P,) or (T, P) go from the training codes: the largest |code - mean| / std over
+    coefficients and frames (0 without a stored distribution). Beyond TRAINING_STDS a code leaves the
+    training range. This is the one rule the add-on uses."""
+    mean, std = training_stats(basis)
+    ok = np.isfinite(std) & (std > 0)
+    if not ok.any():
+        return 0.0
+    z = np.abs(np.atleast_2d(codes)[:, ok] - mean[ok]) / std[ok]
+    return float(z.max(initial=0.0))
+
+
+def key_layout(basis):
+    """Key scale (one training std, 1 without a distribution) and slider range (the training range
+    in slider units, +-10 without one) of each field key: -> scales (P,), ranges (P, 2)."""
+    mean, std = training_stats(basis)
+    ok = np.isfinite(std) & (std > 0)
+    scales = np.where(ok, std, 1.0)
+    centre = np.where(ok, mean, 0.0) / scales
+    ranges = np.stack([centre - TRAINING_STDS, centre + TRAINING_STDS], 1)
+    ranges[~ok] = (-cv.SLIDER_LIMIT, cv.SLIDER_LIMIT)
+    return scales, ranges
 
 
 def template_object(context, basis, ref, name, collection=None, code=None, hint=None):
     """A new object: the template with 'Basis' + one shape key per field, values = code.
 
-    The key scale fits ``code`` and the codes in ``hint`` (else the basis' typical codes).
+    Keys follow ``key_layout``; their range is widened (or scale enlarged) to fit ``code`` and ``hint``.
     """
     names = solver.field_names(basis)
-    sizes = [np.abs(cv.check_code(c)).max(initial=0.0) for c in (code, hint) if c is not None]
-    scale = cv.needed_scale(max(sizes) if sizes else typical_code_size(basis))
     obj = cv.new_mesh_object(name, basis.template, basis.faces, collection or context.collection)
-    cv.add_field_keys(obj, basis.template, basis.fields, names, scale)
+    cv.add_field_keys(obj, basis.template, basis.fields, names, *key_layout(basis))
     obj[cv.PROP_BASIS] = ref
     obj[cv.PROP_BASIS_NAME] = basis.name
+    for c in (code, hint):
+        if c is not None:
+            cv.fit_range(obj, names, basis.template, basis.fields, cv.check_code(c))
     if code is not None:
         cv.set_code(obj, names, code)
     return obj
@@ -183,6 +250,10 @@ def add_registered(context, basis, ref, scan, registration, collection=None):
     obj[cv.PROP_SCAN] = scan.name
     obj[cv.PROP_VARIFOLD] = float(registration.varifold)
     obj[cv.PROP_CHAMFER] = float(registration.chamfer)
+    if getattr(registration, "residual", None) is not None:
+        obj[cv.PROP_RESIDUAL] = float(registration.residual)
+    if getattr(registration, "poor_fit", None) is not None:
+        obj[cv.PROP_POOR_FIT] = bool(registration.poor_fit)
     return obj
 
 
@@ -194,11 +265,20 @@ def check_codes(codes):
             raise cv.ConversionError("the registration diverged (non-finite vertices); nothing was written")
 
 
-def frame_range(context):
+def first_frame(context):
+    """The first frame of ``frame_range`` (the scene's start, or the panel's override)."""
     s = settings(context)
-    if s.frame_end <= s.frame_start:
-        raise cv.ConversionError(f"frame range {s.frame_start}..{s.frame_end} is empty: End must be after Start")
-    return np.arange(s.frame_start, s.frame_end + 1)
+    return s.frame_start if s.use_frame_range else context.scene.frame_start
+
+
+def frame_range(context):
+    """The frames to key or read: the scene's frame range, or the panel's when its override is on."""
+    s, scene = settings(context), context.scene
+    start, end = (s.frame_start, s.frame_end) if s.use_frame_range else (scene.frame_start, scene.frame_end)
+    if end <= start:
+        where = "the panel's override" if s.use_frame_range else "the scene's (Output properties)"
+        raise cv.ConversionError(f"frame range {start}..{end} of {where} is empty: End must be after Start")
+    return np.arange(start, end + 1)
 
 
 def new_collection(context, name):

@@ -6,8 +6,9 @@ from bpy.props import StringProperty
 
 from .. import convert as cv
 from ..jobs import SolveOperator, Task
-from .common import (add_registered, check_codes, common_basis, find_object, frame_range, is_registered,
-                     object_input, select_only, settings, solve_options, sorted_meshes, workflows, write_keys)
+from .common import (TRAINING_STDS, add_registered, check_codes, common_basis, find_object, first_frame, frame_range,
+                     is_registered, object_input, refuse, select_only, selected_meshes, settings, solve_options,
+                     sorted_meshes, template_object, training_excess, workflows, write_keys)
 
 
 def motion_objects(source, collection):
@@ -36,7 +37,7 @@ def motion_frames(context, objects, per_object, basis):
     evaluated on every frame of the range (shape keys, caches, modifiers: whatever Blender evaluates).
     """
     if per_object:
-        return [frame_input(context, o, basis) for o in objects], settings(context).frame_start + np.arange(
+        return [frame_input(context, o, basis) for o in objects], first_frame(context) + np.arange(
             len(objects))
     scene, frames = context.scene, frame_range(context)
     current = scene.frame_current
@@ -51,10 +52,16 @@ def motion_frames(context, objects, per_object, basis):
 
 
 class BAREESA_OT_transfer_motion(SolveOperator, bpy.types.Operator):
-    """Give the motion of an animated mesh (no armature needed) to another body's identity"""
+    """Give the motion of an animated mesh (no armature needed) to another body's identity, as a new object"""
 
     bl_idname = "bareesa.transfer_motion"
     bl_label = "Transfer Motion"
+
+    @classmethod
+    def poll(cls, context):
+        s = context.scene.bareesa
+        return refuse(cls, None if s.motion_target or selected_meshes(context) else
+                      "choose the identity: set Identity in the panel or select the body")
 
     source: StringProperty(name="Motion", default="", description="Animated object (empty: the panel's)")
     source_collection: StringProperty(name="Frames", default="", description="Collection of per-frame objects")
@@ -91,11 +98,24 @@ class BAREESA_OT_transfer_motion(SolveOperator, bpy.types.Operator):
         def apply(context, result):
             cv.check_code(result.motion, "the transferred motion")
             check_codes([result.identity])
-            obj = find_object(target_name)
-            if result.identity.registration is not None:
-                obj = add_registered(context, basis, ref, obj, result.identity.registration)
-                select_only(context, [obj])
+            body = find_object(target_name)
+            made = []
+            if result.identity.registration is not None:  # a scan: its fit is a new object too
+                body = add_registered(context, basis, ref, body, result.identity.registration)
+                made.append(body)
+            coll = body.users_collection[0] if body.users_collection else None
+            obj = template_object(context, basis, ref, f"{body.name}_motion", coll, code=result.motion[0],
+                                  hint=result.motion)
+            obj.matrix_world = body.matrix_world
             write_keys(obj, basis, frames, result.motion)
-            return f"'{obj.name}': {len(frames)} frames of motion keyframed ({frames[0]}-{frames[-1]})"
+            excess = training_excess(basis, result.motion)
+            obj[cv.PROP_RANGE] = excess
+            select_only(context, made + [obj])
+            if excess > TRAINING_STDS:
+                self.report({"WARNING"}, f"'{obj.name}': the motion on this identity reaches {excess:.1f} standard "
+                                         f"deviations from the basis' training codes (range: {TRAINING_STDS:g}); "
+                                         "expect implausible shapes")
+            return (f"'{obj.name}': {len(frames)} frames of motion keyframed ({frames[0]}-{frames[-1]}) "
+                    f"on a new object; '{body.name}' is unchanged")
 
         return Task("transfer motion", solve, apply)

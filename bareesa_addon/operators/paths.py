@@ -1,7 +1,6 @@
 """Interpolate, Extrapolate and (Geodesic) Distance."""
 
 import csv
-from pathlib import Path
 
 import bpy
 import numpy as np
@@ -10,9 +9,11 @@ from bpy.props import BoolProperty, EnumProperty, StringProperty
 from .. import convert as cv
 from .. import solver
 from ..jobs import SolveOperator, Task
-from .common import (add_registered, check_codes, common_basis, find_object, frame_range, is_registered,
-                     new_collection, object_basis, object_input, pick_pair, registered_code, select_only, settings,
-                     solve_options, sorted_meshes, template_object, workflows, write_keys)
+from ..properties import EXTRAPOLATE_SOURCES
+from .common import (add_registered, check_codes, common_basis, find_object, first_frame, frame_range, is_registered,
+                     new_collection, object_basis, object_input, output_path, own_or_panel, pick_pair, refuse,
+                     registered_code, select_only, selected_meshes, settings, solve_options, sorted_meshes,
+                     template_object, workflows, write_keys)
 
 
 class BAREESA_OT_interpolate(SolveOperator, bpy.types.Operator):
@@ -21,18 +22,24 @@ class BAREESA_OT_interpolate(SolveOperator, bpy.types.Operator):
     bl_idname = "bareesa.interpolate"
     bl_label = "Interpolate"
 
+    @classmethod
+    def poll(cls, context):
+        s = context.scene.bareesa
+        return refuse(cls, None if (s.object_a and s.object_b) or selected_meshes(context) else
+                      "choose two objects: set From and To in the panel, or select two meshes")
+
     object_a: StringProperty(name="From", default="")
     object_b: StringProperty(name="To", default="")
     anchor: BoolProperty(name="Keep Body Planted", default=True,
                          description="Keep the body's unmoving part where the straight line between the ends puts it "
-                                     "(the metric's L2 term otherwise lets the body sink ~1 cm when a limb moves)")
+                                     "(not set: the panel's setting)")
 
     def prepare(self, context):
         a, b = pick_pair(context, self.object_a, self.object_b)
         basis, ref = common_basis(context, (a, b))
         inputs = [object_input(context, o, basis) for o in (a, b)]
         frames = frame_range(context)
-        options, anchor = solve_options(context, basis), self.anchor
+        options, anchor = solve_options(context, basis), own_or_panel(self, context, "anchor")
         make_meshes = settings(context).make_collection
         names_ab = (a.name, b.name)
         wf = workflows()
@@ -81,19 +88,23 @@ class BAREESA_OT_extrapolate(SolveOperator, bpy.types.Operator):
     bl_idname = "bareesa.extrapolate"
     bl_label = "Extrapolate"
 
-    source: EnumProperty(name="Direction from", items=(
-        ("AUTO", "Auto", "Two objects when two are chosen or selected, else the active object's keyframes"),
-        ("OBJECTS", "Two objects", "From the start object to the end object"),
-        ("KEYFRAMES", "Keyframes", "The last two shape-key keyframes of the active registered object")),
-        default="AUTO")
+    @classmethod
+    def poll(cls, context):
+        s = context.scene.bareesa
+        return refuse(cls, None if (s.object_a and s.object_b) or selected_meshes(context) else
+                      "choose two registered objects, or select one with shape-key keyframes")
+
+    source: EnumProperty(name="Direction From", items=EXTRAPOLATE_SOURCES, default="AUTO",
+                         description="What gives the direction (not set: the panel's setting)")
     object_a: StringProperty(name="From", default="")
     object_b: StringProperty(name="To", default="")
     anchor: BoolProperty(name="Keep Body Planted", default=True,
-                         description="Keep the body's unmoving part where the straight latent line puts it")
+                         description="Keep the body's unmoving part where the straight latent line puts it "
+                                     "(not set: the panel's setting)")
 
     def prepare(self, context):
         s = settings(context)
-        mode = self.source
+        mode = own_or_panel(self, context, "source", "extrapolate_source")
         if mode == "AUTO":
             two = (self.object_a and self.object_b) or (s.object_a and s.object_b) or len(
                 context.selected_objects) == 2
@@ -107,7 +118,7 @@ class BAREESA_OT_extrapolate(SolveOperator, bpy.types.Operator):
             names = solver.field_names(basis)
             alpha0, alpha1 = registered_code(a, basis, names), registered_code(b, basis, names)
             target_name = None
-            frames = s.frame_start + s.extrapolate_spacing * np.arange(s.extrapolate_steps + 2)
+            frames = first_frame(context) + s.extrapolate_spacing * np.arange(s.extrapolate_steps + 2)
             label = f"{a.name}_{b.name}_extrapolated"
         else:
             obj = bpy.data.objects.get(self.object_b) if self.object_b else context.view_layer.objects.active
@@ -126,7 +137,8 @@ class BAREESA_OT_extrapolate(SolveOperator, bpy.types.Operator):
             target_name = obj.name
             frames = f1 + (f1 - f0) * np.arange(-1, s.extrapolate_steps + 1)
             label = obj.name
-        options, n_new, anchor = solve_options(context, basis), s.extrapolate_steps, self.anchor
+        options, n_new = solve_options(context, basis), s.extrapolate_steps
+        anchor = own_or_panel(self, context, "anchor")
         wf = workflows()
         ends = (wf.KnownCode(alpha0), wf.KnownCode(alpha1))
 
@@ -153,6 +165,12 @@ class BAREESA_OT_distance(SolveOperator, bpy.types.Operator):
     bl_idname = "bareesa.distance"
     bl_label = "Geodesic Distance"
 
+    @classmethod
+    def poll(cls, context):
+        s = context.scene.bareesa
+        some = s.distance_collection or (s.object_a and s.object_b) or selected_meshes(context)
+        return refuse(cls, None if some else "choose a collection, or two objects (From and To, or select two)")
+
     collection: StringProperty(name="Collection", default="", description="Pairwise distances of its objects")
     filepath: StringProperty(name="CSV", subtype="FILE_PATH", default="")
     object_a: StringProperty(name="From", default="")
@@ -167,7 +185,7 @@ class BAREESA_OT_distance(SolveOperator, bpy.types.Operator):
             objects = sorted_meshes(coll)
             if len(objects) < 2:
                 raise cv.ConversionError(f"collection '{coll.name}' holds {len(objects)} meshes: need two or more")
-            csv_path = Path(bpy.path.abspath(self.filepath or s.distance_csv))
+            csv_path = output_path(self.filepath or s.distance_csv, "distance CSV")
         else:
             objects, csv_path = list(pick_pair(context, self.object_a, self.object_b)), None
         basis, _ = common_basis(context, objects)

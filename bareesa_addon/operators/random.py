@@ -8,7 +8,7 @@ from bpy.props import IntProperty
 from .. import convert as cv
 from .. import solver
 from ..jobs import SolveOperator, Task
-from .common import (common_basis, is_registered, load_basis, new_collection, registered_code, select_only,
+from .common import (common_basis, is_registered, load_basis, new_collection, refuse, registered_code, select_only,
                      settings, solve_options, template_object, workflows)
 
 
@@ -17,6 +17,11 @@ class BAREESA_OT_generate_random(SolveOperator, bpy.types.Operator):
 
     bl_idname = "bareesa.generate_random"
     bl_label = "Generate Random Bodies"
+
+    @classmethod
+    def poll(cls, context):
+        s = context.scene.bareesa
+        return refuse(cls, None if s.basis.strip() or s.fit_collection else "choose a basis in the Basis section")
 
     count: IntProperty(name="Count", default=0, min=0, description="0: the panel's count")
     seed: IntProperty(name="Seed", default=-1, min=-1, description="-1: the panel's seed")

@@ -5,8 +5,8 @@ from bpy.props import StringProperty
 
 from .. import convert as cv
 from ..jobs import SolveOperator, Task
-from .common import (add_registered, check_codes, find_object, load_basis, select_only, settings, solve_options,
-                     workflows)
+from .common import (add_registered, check_codes, find_object, load_basis, refuse, select_only, selected_meshes,
+                     settings, solve_options, workflows)
 
 
 class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
@@ -15,14 +15,19 @@ class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
     bl_idname = "bareesa.register_scan"
     bl_label = "Register Scans"
 
+    @classmethod
+    def poll(cls, context):
+        return refuse(cls, None if selected_meshes(context) else "select one or more scan meshes to register")
+
     basis: StringProperty(name="Basis", default="", description="Bundled name or .npz path (empty: the panel's)")
 
     def prepare(self, context):
-        scans = list(context.selected_objects)
+        selected = list(context.selected_objects)
+        scans = [o for o in selected if o.type == "MESH"]
+        skipped = [o.name for o in selected if o.type != "MESH"]
         if not scans:
-            raise cv.ConversionError("select one or more scan meshes to register")
-        for o in scans:
-            cv.require_mesh(o, "selected object")
+            raise cv.ConversionError("select one or more scan meshes to register"
+                                     + (f" (not meshes: {', '.join(skipped)})" if skipped else ""))
         basis, ref = load_basis(self.basis or settings(context).basis)
         wf, depsgraph = workflows(), context.evaluated_depsgraph_get()
         inputs = [wf.Scan(*cv.evaluated_mesh(o, depsgraph)) for o in scans]
@@ -37,6 +42,14 @@ class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
             scan_objects = [find_object(n) for n in names]
             made = [add_registered(context, basis, ref, scan, c.registration) for scan, c in zip(scan_objects, codes)]
             select_only(context, made)
+            poor = [o.name for o, c in zip(made, codes) if getattr(c.registration, "poor_fit", False)]
+            if poor:
+                self.report({"WARNING"}, f"poor fit: {', '.join(poor)} {'are' if len(poor) > 1 else 'is'} far from "
+                                         f"the scan, beyond what basis '{basis.name}' reaches on its own scans; check "
+                                         "the selection, mask floors or add landmarks")
+            if skipped:
+                self.report({"WARNING"}, f"skipped {len(skipped)} selected object{'s' * (len(skipped) > 1)} that "
+                                         f"{'are' if len(skipped) > 1 else 'is'} not a mesh: {', '.join(skipped)}")
             return "; ".join(f"{o.name}: varifold {c.registration.varifold:.3g}, Chamfer {c.registration.chamfer:.3g}"
                              for o, c in zip(made, codes))
 
