@@ -187,7 +187,7 @@ def cmd_interpolate(args):
     """Evenly paced geodesic in-betweens of two meshes, written as T meshes and their codes."""
     start = time.perf_counter()
     basis, a, b = _basis_and_pair(args, min_steps=2)
-    found = path_between(basis, a, b, args.steps, Options(steps=max(args.steps, 3)), anchor=not args.no_anchor,
+    found = path_between(basis, a, b, args.steps, Options(), anchor=not args.no_anchor,
                          keep_detail=not args.no_detail)
     seconds = time.perf_counter() - start
     _write_frames(args.output, basis, found.frames, detail=found.detail)
@@ -322,8 +322,8 @@ def cmd_register_batch(args):
                 "output": str(report.output), "rows": report.rows}, True)
         return
     for row in report.rows:
-        what = (f"varifold {row['varifold']:.3g}, chamfer {row['chamfer']:.3g}" if row["status"] == "ok"
-                else row["error"] or "")
+        what = (f"varifold {row['varifold']:.3g}, chamfer {row['chamfer']:.3g}" + (", poor fit" * bool(row["poor_fit"]))
+                if row["status"] == "ok" else row["error"] or "")
         print(f"  {row['name']:<24} {row['status']:<8} {what}")
     for seam in report.seams:
         if seam["flagged"]:
@@ -370,8 +370,7 @@ def cmd_demo(args):
                      f"vertex error {err:.4g} {basis.units} (mean, against the true correspondence)"))
         codes.append(res.code)
     t0 = time.perf_counter()
-    found = path_between(basis, KnownCode(codes[0]), KnownCode(codes[1]), args.steps,
-                         Options(steps=max(args.steps, 3)))
+    found = path_between(basis, KnownCode(codes[0]), KnownCode(codes[1]), args.steps, Options())
     _write_frames(out / "geodesic", basis, found.frames)
     rows.append(("geodesic/", f"{args.steps} evenly paced frames A -> B", time.perf_counter() - t0,
                  "in the template frame"))

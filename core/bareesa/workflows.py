@@ -59,7 +59,12 @@ def mesh_input(basis, verts, faces):
 @dataclass(frozen=True)
 class Options:
     """How the workflows solve: H2 weights (None: the basis'), registration schedule (None: the
-    basis') and pre-alignment, geodesic time points and L-BFGS cap, torch device and dtype."""
+    basis') and pre-alignment, geodesic time points and L-BFGS cap, torch device and dtype.
+
+    steps is the time resolution of the boundary value problem, not the number of keyframes
+    written (``path_between`` resamples to those): on humanoid geodesics keyframed at 24 frames,
+    10 points move the frames by at most 1.1 mm from 24 points at 40 % of the time, 6 points by 3.5 mm.
+    """
 
     weights: H2Weights | str | None = None
     schedule: tuple | None = None
