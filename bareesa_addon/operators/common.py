@@ -27,6 +27,12 @@ def selected_meshes(context):
     return [o for o in (getattr(context, "selected_objects", None) or ()) if o.type == "MESH"]
 
 
+def has_pair_or_selection(context):
+    """Whether the panel names two objects (From, To) or meshes are selected: what the path operators need."""
+    s = context.scene.bareesa
+    return bool((s.object_a and s.object_b) or selected_meshes(context))
+
+
 def own_or_panel(op, context, name, setting=None):
     """An operator's own property when it was set (scripts, redo panel), else the panel's setting."""
     if op.properties.is_property_set(name):

@@ -10,10 +10,10 @@ from .. import convert as cv
 from .. import solver
 from ..jobs import SolveOperator, Task
 from ..properties import EXTRAPOLATE_SOURCES
-from .common import (add_registered, check_codes, common_basis, find_object, first_frame, frame_range, is_registered,
-                     new_collection, object_basis, object_input, output_path, own_or_panel, pick_pair, refuse,
-                     registered_code, select_only, selected_meshes, settings, solve_options, sorted_meshes,
-                     template_object, workflows, write_keys)
+from .common import (add_registered, check_codes, common_basis, find_object, first_frame, frame_range,
+                     has_pair_or_selection, is_registered, new_collection, object_basis, object_input, output_path,
+                     own_or_panel, pick_pair, refuse, registered_code, select_only, settings, solve_options,
+                     sorted_meshes, template_object, workflows, write_keys)
 
 
 class BAREESA_OT_interpolate(SolveOperator, bpy.types.Operator):
@@ -24,8 +24,7 @@ class BAREESA_OT_interpolate(SolveOperator, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        s = context.scene.bareesa
-        return refuse(cls, None if (s.object_a and s.object_b) or selected_meshes(context) else
+        return refuse(cls, None if has_pair_or_selection(context) else
                       "choose two objects: set From and To in the panel, or select two meshes")
 
     object_a: StringProperty(name="From", default="")
@@ -90,8 +89,7 @@ class BAREESA_OT_extrapolate(SolveOperator, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        s = context.scene.bareesa
-        return refuse(cls, None if (s.object_a and s.object_b) or selected_meshes(context) else
+        return refuse(cls, None if has_pair_or_selection(context) else
                       "choose two registered objects, or select one with shape-key keyframes")
 
     source: EnumProperty(name="Direction From", items=EXTRAPOLATE_SOURCES, default="AUTO",
@@ -167,8 +165,7 @@ class BAREESA_OT_distance(SolveOperator, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        s = context.scene.bareesa
-        some = s.distance_collection or (s.object_a and s.object_b) or selected_meshes(context)
+        some = context.scene.bareesa.distance_collection or has_pair_or_selection(context)
         return refuse(cls, None if some else "choose a collection, or two objects (From and To, or select two)")
 
     collection: StringProperty(name="Collection", default="", description="Pairwise distances of its objects")
