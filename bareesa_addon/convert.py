@@ -77,10 +77,20 @@ def rest_mesh(obj):
     return _read_mesh(obj.data)
 
 
-def new_mesh_object(name, verts, faces, collection, smooth=True):
-    """A new object with a triangle mesh (N, 3), (F, 3), linked to ``collection``."""
+#: Name of the UV map a basis' template UVs (``extras["template_uv"]``) are given on every object.
+UV_MAP = "UVMap"
+
+
+def new_mesh_object(name, verts, faces, collection, smooth=True, uv=None):
+    """A new object with a triangle mesh (N, 3), (F, 3), linked to ``collection``; ``uv`` (F, 3, 2),
+    UVs per face corner (a basis' ``template_uv``), becomes its UV map."""
     mesh = bpy.data.meshes.new(name)
     mesh.from_pydata(np.asarray(verts, dtype=np.float64).tolist(), [], np.asarray(faces).tolist())
+    if uv is not None:
+        uv = np.asarray(uv, dtype=np.float32)
+        if uv.shape != (len(faces), 3, 2):
+            raise ValueError(f"template UVs have shape {uv.shape}, expected ({len(faces)}, 3, 2)")
+        mesh.uv_layers.new(name=UV_MAP).data.foreach_set("uv", uv.ravel())  # loops follow the faces' corners
     mesh.update()
     if smooth:
         mesh.shade_smooth()

@@ -34,6 +34,8 @@ MOTION_COLORS = ((0.60, 0.82, 0.42, 1.0), (0.10, 0.45, 0.22, 1.0))
 TEXT_COLOR = (0.05, 0.05, 0.06, 1.0)
 CAPTION_COLOR = (0.25, 0.25, 0.28, 1.0)
 FIGURES = ("registration", "geodesic", "transfer", "random")
+#: The demo's basis (``bareesa.basis_io.DEFAULT_BASIS``, checked by the tests).
+DEFAULT_BASIS = "human"
 
 
 def log(message):
@@ -58,11 +60,11 @@ def ensure_addon():
 
 
 def pick_basis(requested):
-    """The requested basis (bundled name or .npz path): -> reference. Only the default, ``humanoid``,
-    falls back to ``deformables`` (a checkout whose humanoid was not built); any other name that
+    """The requested basis (bundled name or .npz path): -> reference. Only the default, ``human``,
+    falls back to ``deformables`` (a checkout whose human basis was not built); any other name that
     does not resolve raises InputError."""
     basis_io, errors = solver.module("basis_io"), solver.module("errors")
-    candidates = (requested, "deformables") if requested == "humanoid" else (requested,)
+    candidates = (requested, "deformables") if requested == DEFAULT_BASIS else (requested,)
     for name in candidates:
         try:
             basis_io.resolve_basis_path(name)
@@ -84,6 +86,25 @@ def sample_code(basis, seed, scale=1.0):
     return scale * code
 
 
+def demo_codes(basis, seed):
+    """Codes (2, P) of the demo's two bodies: two identities from the stored distribution in two
+    clearly different poses, when the basis has pose prototypes: the one nearest the rest pose
+    and, of the three quarters nearest rest (the most extreme poses, arms overhead, are where
+    registration can still fall into a wrong minimum), the one farthest from it."""
+    codes = np.stack([sample_code(basis, seed + 100 + i) for i in range(2)])
+    protos = basis.extras.get("pose_prototypes")
+    if protos is None or "pose" not in basis.groups:
+        return codes
+    pose = basis.group_slice("pose")
+    p = np.asarray(protos, dtype=np.float64)[:, pose]
+    norms = np.linalg.norm(p, axis=1)
+    i = int(np.argmin(norms))
+    usable = np.flatnonzero(norms <= np.percentile(norms, 75))
+    j = int(usable[np.argmax(np.linalg.norm(p[usable] - p[i], axis=1))])
+    codes[:, pose] = p[[i, j]]
+    return codes
+
+
 def simulate_scan(verts, faces, seed):
     """An unregistered scan of a mesh (remeshed, noisy, with holes, rigidly moved and rescaled): -> verts, faces."""
     v, f, _ = solver.module("scan_simulator").simulate_scan(verts, faces, seed=seed, **SCAN_OPTIONS)
@@ -96,7 +117,7 @@ def add_object(name, verts, faces, collection, location=(0, 0, 0)):
     return obj
 
 
-def run_demo(out, basis_name="humanoid", schedule="FAST", frames=24, seed=0, figures=False, width=1800,
+def run_demo(out, basis_name=DEFAULT_BASIS, schedule="FAST", frames=24, seed=0, figures=False, width=1800,
              figure_width=1000):
     """Build the demo scene, save demo.blend and render contact_sheet.png into ``out``.
 
@@ -123,8 +144,8 @@ def run_demo(out, basis_name="humanoid", schedule="FAST", frames=24, seed=0, fig
     # 1. two simulated scans of two different bodies in two different poses
     scans = []
     with stage(times, "simulate 2 scans"):
-        for i, name in enumerate(("scan_A", "scan_B")):
-            truth = basis.template + np.tensordot(sample_code(basis, seed + 100 + i), basis.fields, axes=1)
+        for i, (name, code) in enumerate(zip(("scan_A", "scan_B"), demo_codes(basis, seed))):
+            truth = basis.template + np.tensordot(code, basis.fields, axes=1)
             v, f = simulate_scan(truth, basis.faces, seed=seed + i + 1)
             scans.append(add_object(name, v, f, scene.collection, location=(0, 0, 0)))
             log(f"{name}: {len(v)} vertices, {len(f)} faces (remeshed, holes, rigidly moved)")
@@ -398,7 +419,7 @@ def _remove_scene(sheet, world, cam_data):
 def main(argv=None):
     parser = argparse.ArgumentParser(description="BaRe-ESA headless Blender demo")
     parser.add_argument("--out", type=Path, default=Path("bareesa_demo"), help="output folder")
-    parser.add_argument("--basis", default="humanoid", help="bundled basis name or .npz path")
+    parser.add_argument("--basis", default=DEFAULT_BASIS, help="bundled basis name or .npz path")
     parser.add_argument("--schedule", choices=["fast", "paper"], default="fast")
     parser.add_argument("--frames", type=int, default=24)
     parser.add_argument("--seed", type=int, default=0)

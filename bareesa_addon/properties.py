@@ -27,8 +27,8 @@ class BareEsaSettings(bpy.types.PropertyGroup):
     """Everything the panel's sections need; operators read it when their own arguments are empty."""
 
     # Basis
-    basis: StringProperty(name="Basis", default="humanoid",
-                          description="A bundled basis name (humanoid, deformables), a basis saved in the user's "
+    basis: StringProperty(name="Basis", default="human",
+                          description="A bundled basis name (human, deformables), a basis saved in the user's "
                                       "bases directory, or a path to an .npz basis file")
     metric: EnumProperty(name="Metric", items=METRIC_PRESETS, default="BASIS",
                          description="Weights of the invariant H2 metric")

@@ -46,7 +46,7 @@ def resolve_basis(reference, user_dir=None):
     reference = (reference or "").strip()
     if not reference:
         raise module("errors").InputError("no basis chosen: set one in the Basis section (a bundled name "
-                                          "such as 'humanoid' or a path to an .npz file)")
+                                          "such as 'human' or a path to an .npz file)")
     p = Path(reference)
     if p.suffix != ".npz" and p.parent == Path(".") and user_dir is not None:
         candidate = Path(user_dir) / f"{reference}.npz"

@@ -23,6 +23,7 @@ import numpy as np
 
 from bench.common import markdown_table, report
 from bareesa import batch
+from bareesa import basis_io
 from bareesa.basis_io import load_basis, resolve_basis_path
 from bareesa.mesh import load_mesh, save_mesh
 from bareesa.scan_simulator import apply_similarity, simulate_scan
@@ -100,7 +101,7 @@ def run(basis_name, scans, out, workers, **kwargs):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--basis", default="humanoid")
+    parser.add_argument("--basis", default=basis_io.DEFAULT_BASIS)
     parser.add_argument("--scans", type=int, default=40, help="held-out scans for the throughput rows")
     parser.add_argument("--frames", type=int, default=20, help="frames of the simulated capture (0: skip)")
     parser.add_argument("--workers", default="1,2", help="worker counts of the throughput rows")

@@ -27,7 +27,7 @@ FACTOR = 3.0
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--basis", default="humanoid")
+    parser.add_argument("--basis", default=basis_io.DEFAULT_BASIS)
     parser.add_argument("--scans", type=int, default=8)
     parser.add_argument("--seed", type=int, default=100, help="first seed (held out: the build never uses them)")
     parser.add_argument("--threads", type=int, default=2)

@@ -259,11 +259,6 @@ def render(ax, verts, faces, elev=8, azim=-90, color=(0.75, 0.78, 0.85)):
 
 
 def contact_sheet(path, basis, gen, seqs):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     from bases.build import humanoid
 
     train, test = humanoid.identity_sets()
@@ -271,13 +266,23 @@ def contact_sheet(path, basis, gen, seqs):
             ("held-out identities", [gen.rest_mesh(p)[0] for p in test] + [None, None]),
             ("training motion 'squat' (template body)", list(gen.motion({}, "squat")[::3])[:6]),
             ("held-out motion 'lunge' (held-out identity 0)", list(seqs[(0, "lunge")][::3])[:6])]
-    fig = plt.figure(figsize=(12, 9.5))
+    sheet(path, rows, basis.faces, height=9.5)
+
+
+def sheet(path, rows, faces, height):
+    """A PNG of titled rows of up to six meshes (None leaves a gap): rows [(title, [(N, 3), ...])]."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig = plt.figure(figsize=(12, height))
     for i, (title, meshes) in enumerate(rows):
         for j, v in enumerate(meshes[:6]):
             if v is None:
                 continue
             ax = fig.add_subplot(len(rows), 6, 6 * i + j + 1, projection="3d")
-            render(ax, np.asarray(v, dtype=np.float64), basis.faces, color=(0.85, 0.75, 0.65) if i % 2 else
+            render(ax, np.asarray(v, dtype=np.float64), faces, color=(0.85, 0.75, 0.65) if i % 2 else
                    (0.7, 0.78, 0.9))
             if j == 0:
                 ax.set_title(title, loc="left", fontsize=9)
@@ -358,7 +363,7 @@ def main(argv=None):
         write_card_accuracy(args.basis, results)
 
 
-def write_card_accuracy(name, results):
+def write_card_accuracy(name, results, measured_by="python -m bench.humanoid_accuracy --card"):
     """Record the measured accuracy in the bundled basis' JSON card (bases/<name>.json)."""
     from bareesa.basis_io import BUNDLED_DIR
 
@@ -366,7 +371,7 @@ def write_card_accuracy(name, results):
     card = json.loads(path.read_text())
     # parts skipped in this run (--skip) keep their last measurement
     summary = dict(card.get("accuracy", {}))
-    summary |= {"measured_by": "python -m bench.humanoid_accuracy --card", "date": time.strftime("%Y-%m-%d"),
+    summary |= {"measured_by": measured_by, "date": time.strftime("%Y-%m-%d"),
                "data": "simulated scans / frames of held-out identities in held-out motions"}
     if "registration" in results:
         summary["registration_mean"] = results["registration"]["mean"]

@@ -38,7 +38,7 @@ def shot(basis, velocity, steps, tol, substeps=1, device="cpu"):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--basis", default="humanoid")
+    parser.add_argument("--basis", default=basis_io.DEFAULT_BASIS)
     parser.add_argument("--seeds", type=int, default=8)
     parser.add_argument("--steps", type=int, default=8)
     parser.add_argument("--threads", type=int, default=2)

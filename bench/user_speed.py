@@ -99,7 +99,7 @@ def paper_rows(options, resolution):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--basis", default="humanoid")
+    parser.add_argument("--basis", default=basis_io.DEFAULT_BASIS)
     parser.add_argument("--paper", action="store_true", help="add the paper-scale problem (needs ../shared/data)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=2)

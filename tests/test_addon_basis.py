@@ -166,3 +166,23 @@ def test_every_panel_section_draws_existing_properties_and_operators(scene, tiny
                "bareesa.transfer_motion", "bareesa.generate_random", "bareesa.build_basis", "bareesa.distance"):
         assert op in drawn
     assert {"basis", "schedule", "steps", "frame_start", "frame_end", "seed", "metric"} <= set(drawn)
+
+
+def test_template_uvs_of_a_basis_become_the_uv_map_of_its_objects(scene, tiny, tmp_path):
+    from bareesa.basis_io import load_basis, save_basis
+
+    basis, _, _ = tiny
+    rng = np.random.default_rng(0)
+    basis = load_basis(tiny[1])
+    basis.extras["template_uv"] = rng.uniform(size=(len(basis.faces), 3, 2)).astype(np.float32)
+    path = tmp_path / "uv_basis.npz"
+    save_basis(path, basis)
+    bpy.context.scene.bareesa.basis = str(path)
+    assert bpy.ops.bareesa.load_template() == {"FINISHED"}
+    mesh = bpy.context.active_object.data
+    assert [uv.name for uv in mesh.uv_layers] == ["UVMap"]
+    got = np.empty(len(mesh.loops) * 2, dtype=np.float32)
+    mesh.uv_layers["UVMap"].data.foreach_get("uv", got)
+    np.testing.assert_allclose(got.reshape(-1, 3, 2), basis.extras["template_uv"], atol=1e-6)
+    loops = np.array([v for p in mesh.polygons for v in p.vertices]).reshape(-1, 3)
+    np.testing.assert_array_equal(loops, basis.faces)  # corner k of face f is the loop the UV was written to

@@ -5,6 +5,9 @@ The README's demo (``tools/demo_blender.py``) runs the same code on the bundled 
 
 import struct
 
+import numpy as np
+import pytest
+
 from tests.addon_support import bpy, tiny  # noqa: F401
 
 
@@ -63,4 +66,33 @@ def test_demo_basis_choice_rejects_an_unknown_name_and_keeps_the_default():
 
     with pytest.raises(InputError, match="no bundled basis named 'nosuch'"):
         pick_basis("nosuch")
-    assert pick_basis("humanoid") == "humanoid" and pick_basis("deformables") == "deformables"
+    assert pick_basis("human") == "human" and pick_basis("deformables") == "deformables"
+
+
+def test_front_ends_default_to_the_solver_default_basis():
+    from bareesa.basis_io import DEFAULT_BASIS
+    from bareesa.cli import build_parser
+
+    from bareesa_addon import demo, properties
+
+    assert demo.DEFAULT_BASIS == DEFAULT_BASIS
+    assert properties.BareEsaSettings.__annotations__["basis"].keywords["default"] == DEFAULT_BASIS
+    assert build_parser().parse_args(["register", "scan.ply", "-o", "out.ply"]).basis == DEFAULT_BASIS
+
+
+def test_demo_scans_show_two_clearly_different_poses():
+    from bareesa.basis_io import load_basis
+
+    from bareesa_addon.demo import demo_codes
+
+    basis = load_basis("human")
+    a, b = demo_codes(basis, seed=0)
+    pose = basis.group_slice("pose")
+    protos = basis.extras["pose_prototypes"][:, pose]
+    norms = np.linalg.norm(protos, axis=1)
+    assert np.linalg.norm(a[pose]) == pytest.approx(norms.min())  # A: the prototype nearest rest
+    assert np.linalg.norm(b[pose]) <= np.percentile(norms, 75) + 1e-12  # B: not one of the most extreme
+    gaps = np.linalg.norm(protos - a[pose], axis=1)
+    assert np.linalg.norm(b[pose] - a[pose]) > np.median(gaps)  # ... but far from A
+    moved = np.linalg.norm(np.tensordot(a - b, basis.fields, axes=1), axis=1)
+    assert moved.max() > 0.1 * basis.scale  # a limb moves by a tenth of the body's size or more

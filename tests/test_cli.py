@@ -260,14 +260,14 @@ def test_interpolate_and_extrapolate_keep_the_inputs_off_basis_detail(capsys, bu
     assert np.allclose(gap[3], gap[0] + 3 * (gap[1] - gap[0]), atol=1e-8)
 
 
-def test_interpolate_keeps_the_humanoid_planted_unless_no_anchor(capsys, tmp_path):
+def test_interpolate_keeps_the_default_body_planted_unless_no_anchor(capsys, tmp_path):
     """Rest -> both arms up on the bundled basis: the CLI's frames keep the feet on the floor;
     --no-anchor writes the geodesic as solved, which sinks the body by ~3 cm."""
     from bareesa.geodesics import decode_path
-    from bareesa.basis_io import load_basis
+    from bareesa.basis_io import DEFAULT_BASIS, load_basis
     from bareesa.mesh import load_mesh
 
-    b = load_basis("humanoid")
+    b = load_basis(DEFAULT_BASIS)  # what the CLI uses without --basis
     t, _, h = b.tensors()
     bodies = decode_path(t, h, b.extras["pose_prototypes"])
     up = bodies[np.argmax(bodies[:, :, 2].max(1))]

@@ -1,6 +1,6 @@
 """Render the README's filmstrips: an interpolation and a motion transfer, made with the add-on's operators.
 
-    .venv/bin/python tools/render_filmstrip.py [--out docs/images] [--basis humanoid] [--frames 24]
+    .venv/bin/python tools/render_filmstrip.py [--out docs/images] [--basis human] [--frames 24]
 
 Two bodies of the basis' distribution (template objects with their codes) are interpolated on
 frames 1..N (Interpolate), and that motion is transferred onto a third identity (Transfer Motion);
@@ -78,7 +78,7 @@ def render(out, basis_name, frames, width):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "images")
-    parser.add_argument("--basis", default="humanoid")
+    parser.add_argument("--basis", default="human")
     parser.add_argument("--frames", type=int, default=24)
     parser.add_argument("--width", type=int, default=1400)
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds the render may take")

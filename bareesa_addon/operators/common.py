@@ -184,7 +184,8 @@ def template_object(context, basis, ref, name, collection=None, code=None, hint=
     Keys follow ``key_layout``; their range is widened (or scale enlarged) to fit ``code`` and ``hint``.
     """
     names = solver.field_names(basis)
-    obj = cv.new_mesh_object(name, basis.template, basis.faces, collection or context.collection)
+    obj = cv.new_mesh_object(name, basis.template, basis.faces, collection or context.collection,
+                             uv=basis.extras.get("template_uv"))
     cv.add_field_keys(obj, basis.template, basis.fields, names, *key_layout(basis))
     obj[cv.PROP_BASIS] = ref
     obj[cv.PROP_BASIS_NAME] = basis.name

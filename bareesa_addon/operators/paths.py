@@ -72,7 +72,8 @@ class BAREESA_OT_interpolate(SolveOperator, bpy.types.Operator):
                 coll = new_collection(context, f"{name}_frames")
                 verts = basis.template + np.tensordot(path, basis.fields, axes=1)
                 for f, v, m in zip(frames, verts, matrices):
-                    frame_obj = cv.new_mesh_object(f"{name}_{int(f):04d}", v, basis.faces, coll)
+                    frame_obj = cv.new_mesh_object(f"{name}_{int(f):04d}", v, basis.faces, coll,
+                                                   uv=basis.extras.get("template_uv"))
                     frame_obj.matrix_world = m
             select_only(context, made + [obj])
             return (f"'{name}': geodesic keyframed on frames {frames[0]}-{frames[-1]}, "

@@ -1,7 +1,8 @@
-"""Rebuild the bundled bases from nothing: ``python -m bases.build [humanoid] [deformables] [-o DIR]``.
+"""Rebuild the bundled bases from nothing: ``python -m bases.build [human] [deformables] [humanoid] [-o DIR]``.
 
-Deterministic (fixed seeds, single-threaded torch); needs the ``bpy`` module
-(``pip install -e ".[blender]"``) or Blender's own Python.
+Deterministic (fixed seeds, single-threaded torch); needs the ``bpy`` module and,
+for ``human``, the Anny body model (``pip install -e ".[bases]"``; Anny's first
+model build takes ~3 min and writes ~0.8 GB to ``ANNY_CACHE_DIR``).
 """
 
 import argparse
@@ -15,6 +16,9 @@ import numpy as np
 BASES_DIR = Path(__file__).resolve().parents[1]
 #: Bundled fields are stored in float16 (bench/humanoid_accuracy.py compares against float64).
 FIELDS_DTYPE = np.float16
+BUILDERS = ("human", "deformables", "humanoid")
+#: What ``python -m bases.build`` rebuilds: the bundled bases (``humanoid``, the retired mannequin, on request).
+DEFAULT = ("human", "deformables")
 
 
 def _log(msg):
@@ -23,7 +27,7 @@ def _log(msg):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="python -m bases.build", description=__doc__.splitlines()[0])
-    parser.add_argument("names", nargs="*", metavar="NAME", help="bases to build: deformables, humanoid (default: all)")
+    parser.add_argument("names", nargs="*", metavar="NAME", help="bases to build: human, deformables, humanoid (default: human and deformables)")
     parser.add_argument("-o", "--output", type=Path, default=BASES_DIR, help="folder to write <name>.npz/.json")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch threads (default 1: deterministic and fastest on a shared machine)")
@@ -31,9 +35,9 @@ def main(argv=None):
     parser.add_argument("--keep-full", type=Path, metavar="DIR",
                         help="also write float64 copies to DIR (to compare accuracy with the shipped precision)")
     args = parser.parse_args(argv)
-    unknown = set(args.names) - {"deformables", "humanoid"}
+    unknown = set(args.names) - set(BUILDERS)
     if unknown:
-        parser.error(f"unknown basis {', '.join(sorted(unknown))}; choose from deformables, humanoid")
+        parser.error(f"unknown basis {', '.join(sorted(unknown))}; choose from {', '.join(BUILDERS)}")
 
     import torch
 
@@ -41,15 +45,15 @@ def main(argv=None):
     try:
         import bpy  # noqa: F401
     except ImportError:
-        sys.exit("building the bases needs the bpy module: pip install -e '.[blender]' (Python 3.11)")
+        sys.exit("building the bases needs the bpy module: pip install -e '.[bases]' (Python 3.11)")
     from bareesa.basis_io import save_basis
 
     import importlib
 
-    builders = {n: importlib.import_module(f"bases.build.{n}").build for n in ("deformables", "humanoid")}
+    builders = {n: importlib.import_module(f"bases.build.{n}").build for n in dict.fromkeys(args.names or DEFAULT)}
     dtype = None if args.full_precision else FIELDS_DTYPE
     total = time.perf_counter()
-    for name in dict.fromkeys(args.names or ["deformables", "humanoid"]):
+    for name in builders:
         start = time.perf_counter()
         _log(f"building {name}")
         basis, _ = builders[name](log=_log)

@@ -39,11 +39,21 @@ def fit_basis_distribution(basis, frames, n_components, max_samples=120, steps=4
     codes = project_to_basis(basis, frames[pick])[0]
     codes = codes[np.abs(codes).sum(1) > 1e-9]
     t, f, h = basis.tensors()
+    metric = basis.template_metric()  # preconditioning once for all (5x faster than G-bar at each mean code)
     velocities = np.stack([initial_velocity(geodesic(t, f, h, np.zeros_like(c), c, basis.weights, steps=steps,
-                                                     max_iter=max_iter).path) for c in codes])
+                                                     max_iter=max_iter, metric=metric).path) for c in codes])
     dist = fit_distribution(velocities, basis.groups, n_components, seed=seed)
     dist["distribution_samples"] = np.asarray(len(codes))
     return dist
+
+
+def checked_template(template, faces, name):
+    """Refuse a template that is not a closed manifold (the H2 metric and the varifold need one)."""
+    from bareesa.mesh import validate_mesh
+
+    rep = validate_mesh(template, faces, name)
+    if rep.n_boundary_edges or rep.n_nonmanifold_edges:
+        raise RuntimeError(f"{name} template is not closed and manifold: {rep}")
 
 
 def topology_signature(faces):

@@ -41,11 +41,10 @@ from mathutils import Quaternion, Vector
 from bareesa.latent import PAPER_BODY_SCHEDULE
 
 from bareesa.basis_building import build_basis
-from bareesa.mesh import validate_mesh
 from bareesa.statistics import pose_prototypes
 
 from .blender import bake, mesh_arrays, mesh_object, reset_scene, triangles
-from .common import elastic_paths, fit_basis_distribution, topology_signature
+from .common import checked_template, elastic_paths, fit_basis_distribution, topology_signature
 
 NAME = "humanoid"
 SEED = 5
@@ -334,159 +333,8 @@ def rigged_body(name, cage_verts, polys, nodes, weights):
 
 # ------------------------------------------------------------------------------- motions
 
-X, Y, Z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
+from .motions import TEST_MOTIONS, TRAIN_MOTIONS, pose_at  # noqa: E402  (shared with the human basis)
 
-
-def _side(side, axis, angle):
-    """Mirror a rotation given for the left side (+X) to the right: axis (x, y, z) -> (x, -y, -z)."""
-    return (axis, angle) if side == "L" else ((axis[0], -axis[1], -axis[2]), angle)
-
-
-def _bump(u, k=1):
-    """0 -> 1 -> 0 smoothly k times over u in [0, 1]."""
-    return math.sin(math.pi * k * u) ** 2
-
-
-def _pos(x):
-    return max(0.0, x)
-
-
-def pose_at(motion, u):
-    """Rotations (armature rest axes, degrees) and root offset of a motion at phase u in [0, 1].
-
-    -> ({bone: [(axis, degrees), ...]}, (dx, dy, dz) metres). Conventions: flexion of a
-    downward bone about -X moves it forward (-Y); abduction of the left arm/leg is about -Y.
-    """
-    r, root = {}, (0.0, 0.0, 0.0)
-
-    def add(bone, axis, deg):
-        r.setdefault(bone, []).append((axis, deg))
-
-    def both(bone, axis, deg):
-        for s in "LR":
-            ax, a = _side(s, axis, deg)
-            add(f"{bone}.{s}", ax, a)
-
-    s1 = math.sin(2 * math.pi * u)
-    if motion == "arms_raise_side":  # left arm overhead, then the right one, then both to the side
-        for s, (lo, hi, deg) in (("L", (0, 1 / 3, 150)), ("R", (1 / 3, 2 / 3, 150))):
-            ax, a = _side(s, Y, -deg * _bump(min(1.0, max(0.0, (u - lo) / (hi - lo)))))
-            add(f"upper_arm.{s}", ax, a)
-        both("upper_arm", Y, -95 * _bump(max(0.0, 3 * u - 2)))
-    elif motion == "arms_raise_front":
-        both("upper_arm", X, -130 * _bump(u))
-        both("upper_arm", Y, 25 * _bump(u))
-    elif motion == "punch":
-        for s, ph in (("L", 1.0), ("R", -1.0)):
-            p = _pos(ph * math.sin(4 * math.pi * u)) ** 1.5
-            ax, a = _side(s, Y, 25)
-            add(f"upper_arm.{s}", ax, a * min(1, 4 * u, 4 * (1 - u)))
-            add(f"upper_arm.{s}", X, -(45 + 40 * p) * min(1, 4 * u, 4 * (1 - u)))
-            add(f"forearm.{s}", X, -(110 * (1 - p)) * min(1, 4 * u, 4 * (1 - u)))
-    elif motion == "jumping_jacks":
-        a = _bump(u, 2)
-        both("upper_arm", Y, -120 * a)
-        both("thigh", Y, -14 * a)
-        root = (0.0, 0.0, 0.06 * math.sin(2 * math.pi * u) ** 2)
-    elif motion == "squat":
-        a = _bump(u)
-        hip, knee = 95 * a, 125 * a
-        both("thigh", X, -hip)
-        both("shin", X, knee)
-        both("foot", X, -(knee - hip))
-        add("spine", X, 25 * a)
-        add("chest", X, 10 * a)
-        both("upper_arm", X, -80 * a)
-        drop = 0.43 * (1 - math.cos(math.radians(hip))) + 0.41 * (1 - math.cos(math.radians(knee - hip)))
-        root = (0.0, 0.0, -drop)
-    elif motion == "knee_lift":
-        for s, ph in (("L", 1.0), ("R", -1.0)):
-            p = _pos(ph * math.sin(4 * math.pi * u))
-            add(f"thigh.{s}", X, -95 * p)
-            add(f"shin.{s}", X, 100 * p)
-    elif motion == "one_leg_jump":
-        a = min(1.0, 5 * u, 5 * (1 - u))
-        add("thigh.L", X, -30 * a)
-        add("shin.L", X, 95 * a)
-        hop = abs(math.sin(3 * math.pi * u)) * a
-        add("thigh.R", X, -15 * (1 - hop) * a)
-        add("shin.R", X, 25 * (1 - hop) * a)
-        both("upper_arm", Y, -30 * a)
-        root = (0.0, 0.0, 0.09 * hop)
-    elif motion == "run_in_place":
-        a = min(1.0, 4 * u, 4 * (1 - u))
-        for s, ph in (("L", 1.0), ("R", -1.0)):
-            p = ph * math.sin(4 * math.pi * u)
-            add(f"thigh.{s}", X, -70 * _pos(p) * a)
-            add(f"shin.{s}", X, 110 * _pos(p) * a)
-            add(f"upper_arm.{s}", X, 40 * p * a)
-            add(f"forearm.{s}", X, -85 * a)
-        root = (0.0, 0.0, 0.03 * abs(math.sin(4 * math.pi * u)) * a)
-    elif motion == "torso_twist":
-        add("spine", Z, 28 * s1)
-        add("chest", Z, 22 * s1)
-        add("neck", Z, 10 * s1)
-        both("upper_arm", Y, -25 * _bump(u))
-        both("forearm", X, -60 * _bump(u))
-    elif motion == "torso_bend":
-        fwd, side = _bump(2 * u) if u < 0.5 else 0.0, math.sin(2 * math.pi * u) if u >= 0.5 else 0.0
-        add("spine", X, 45 * fwd)
-        add("chest", X, 25 * fwd)
-        add("spine", Y, 20 * side)
-        add("chest", Y, 15 * side)
-    elif motion == "head_turn":
-        turn = math.sin(2 * math.pi * u) if u < 0.5 else 0.0
-        nod = math.sin(2 * math.pi * u) if u >= 0.5 else 0.0
-        add("neck", Z, 35 * turn)
-        add("head", Z, 30 * turn)
-        add("neck", X, 25 * nod)
-        add("head", X, 20 * nod)
-    elif motion == "shake_arms":
-        a = min(1.0, 5 * u, 5 * (1 - u))
-        both("upper_arm", Y, -(35 + 18 * math.sin(12 * math.pi * u)) * a)
-        both("upper_arm", X, -20 * math.sin(12 * math.pi * u + 1.0) * a)
-        both("forearm", X, -(35 + 30 * math.sin(12 * math.pi * u + 2.0)) * a)
-        both("hand", X, 30 * math.sin(12 * math.pi * u + 3.0) * a)
-    elif motion == "biceps_curl":
-        for s, ph in (("L", 0.0), ("R", 0.5)):
-            p = _bump(u + ph, 2)
-            ax, a = _side(s, Y, 30)
-            add(f"upper_arm.{s}", ax, a)
-            add(f"forearm.{s}", X, -135 * p)
-            add(f"hand.{s}", X, -20 * p)
-    elif motion == "side_steps":
-        for s, ph in (("L", 1.0), ("R", -1.0)):
-            p = _pos(ph * math.sin(4 * math.pi * u))
-            ax, a = _side(s, Y, -30 * p)
-            add(f"thigh.{s}", ax, a)
-            add(f"shin.{s}", X, 30 * p)
-        both("upper_arm", Y, 15 * _bump(u))
-    elif motion == "wave":  # held out
-        a = _bump(u) ** 0.5
-        ax, ang = _side("R", Y, -130 * a)
-        add("upper_arm.R", ax, ang)
-        add("forearm.R", X, -(55 + 35 * math.sin(8 * math.pi * u)) * a)
-        add("hand.R", Y, 20 * math.sin(8 * math.pi * u) * a)
-        add("neck", Z, -15 * a)
-    elif motion == "lunge":  # held out
-        a = _bump(u)
-        add("thigh.L", X, -75 * a)
-        add("shin.L", X, 80 * a)
-        add("foot.L", X, -5 * a)
-        add("thigh.R", X, 25 * a)
-        add("shin.R", X, 70 * a)
-        add("foot.R", X, -50 * a)
-        add("spine", X, -5 * a)
-        root = (0.0, -0.1 * a, -0.2 * a)
-    else:
-        raise KeyError(motion)
-    return r, root
-
-
-TRAIN_MOTIONS = ["arms_raise_side", "arms_raise_front", "punch", "jumping_jacks", "squat", "knee_lift",
-                 "one_leg_jump", "run_in_place", "torso_twist", "torso_bend", "head_turn", "shake_arms",
-                 "biceps_curl", "side_steps"]
-TEST_MOTIONS = ["wave", "lunge"]
 
 
 def keyframe_motion(rig, motion, frames=FRAMES, key_step=KEY_STEP):
@@ -599,9 +447,7 @@ def build(pose_components=POSE_COMPONENTS, shape_components=SHAPE_COMPONENTS, lo
     start = time.perf_counter()
     data = data or generate(log, test=False)
     template, faces = data["template"], data["faces"]
-    rep = validate_mesh(template, faces, NAME)
-    if rep.n_boundary_edges or rep.n_nonmanifold_edges:
-        raise RuntimeError(f"humanoid template is not closed and manifold: {rep}")
+    checked_template(template, faces, NAME)
     log("humanoid: elastic geodesics template -> training identities")
     shape_paths = elastic_paths([(template, v) for v in data["train_rest"]], faces, steps=4, max_iter=elastic_iter)
     height = float(template[:, 2].max() - template[:, 2].min())

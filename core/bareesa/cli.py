@@ -17,7 +17,7 @@ import torch
 
 from . import __version__
 from .basis_building import build_basis
-from .basis_io import load_basis, save_basis
+from .basis_io import DEFAULT_BASIS, load_basis, save_basis
 from .errors import BareEsaError, InputError
 from .evaluation import mesh_metrics, vertex_error
 from .geodesics import decode_path
@@ -387,7 +387,7 @@ def _pair_parser(sub, name, func, text, frames=None):
     p = sub.add_parser(name, help=text)
     p.add_argument("a", type=Path)
     p.add_argument("b", type=Path)
-    p.add_argument("--basis", default="humanoid", help="bundled basis name or .npz path")
+    p.add_argument("--basis", default=DEFAULT_BASIS, help=f"bundled basis name or .npz path (default: {DEFAULT_BASIS})")
     if frames is not None:
         steps, anchor, detail = frames
         p.add_argument("--steps", type=int, default=10, help=steps)
@@ -422,7 +422,7 @@ def build_parser():
 
     p = sub.add_parser("register", help="register a raw scan onto a basis' template")
     p.add_argument("scan", type=Path)
-    p.add_argument("--basis", default="humanoid", help="bundled basis name or .npz path")
+    p.add_argument("--basis", default=DEFAULT_BASIS, help=f"bundled basis name or .npz path (default: {DEFAULT_BASIS})")
     p.add_argument("-o", "--output", type=Path, required=True, help="registered mesh (template topology)")
     p.add_argument("--landmarks", type=Path, help="JSON or CSV: template vertex, x, y, z[, weight] per line")
     p.add_argument("--json", action="store_true", help="print JSON (code, varifold, chamfer, seconds, levels)")
@@ -431,7 +431,7 @@ def build_parser():
     p = sub.add_parser("register-batch", help="register many scans (or a 4D sequence) on a Dask cluster, resumably")
     p.add_argument("scans", nargs="*", type=Path, metavar="SCAN")
     p.add_argument("--list", type=Path, help="a file of scan paths, one a line (relative to the file's folder)")
-    p.add_argument("--basis", default="humanoid", help="bundled basis name or .npz path")
+    p.add_argument("--basis", default=DEFAULT_BASIS, help=f"bundled basis name or .npz path (default: {DEFAULT_BASIS})")
     p.add_argument("-o", "--output", type=Path, required=True,
                    help="folder of the registered meshes, JSON records and summary.csv/.json")
     p.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster (default 2)")
@@ -477,13 +477,13 @@ def build_parser():
     p.add_argument("frames", nargs="+", type=Path)
     p.add_argument("--identity", type=Path, required=True, help="a mesh (scan or registered) of the identity")
     p.add_argument("--group", default="shape", help="the identity group of the basis (default: shape)")
-    p.add_argument("--basis", default="humanoid", help="bundled basis name or .npz path")
+    p.add_argument("--basis", default=DEFAULT_BASIS, help=f"bundled basis name or .npz path (default: {DEFAULT_BASIS})")
     p.add_argument("-o", "--output", type=Path, required=True)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_transfer)
 
     p = sub.add_parser("sample", help="random shapes from the basis' distribution (or one fitted to FILES)")
-    p.add_argument("--basis", default="humanoid", help="bundled basis name or .npz path")
+    p.add_argument("--basis", default=DEFAULT_BASIS, help=f"bundled basis name or .npz path (default: {DEFAULT_BASIS})")
     p.add_argument("-n", type=int, default=6, help="number of shapes")
     p.add_argument("--fit", nargs="+", type=Path, help="meshes to fit the distribution to")
     p.add_argument("--components", type=int, default=3, help="mixture components per group with --fit")
@@ -500,7 +500,7 @@ def build_parser():
 
     p = sub.add_parser("demo", help="simulate two scans, register them and interpolate (bundled basis)")
     p.add_argument("-o", "--output", default="bareesa-demo", help="folder for the meshes it writes")
-    p.add_argument("--basis", default="humanoid", help="bundled basis name or .npz path (default: humanoid)")
+    p.add_argument("--basis", default=DEFAULT_BASIS, help=f"bundled basis name or .npz path (default: {DEFAULT_BASIS})")
     p.add_argument("--steps", type=int, default=8, help="frames of the geodesic (default 8)")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_demo)
