@@ -47,12 +47,36 @@ def test_resample_path_gives_even_metric_speed_and_keeps_endpoints():
     a0, a1 = np.zeros(4), np.array([2.0, -1.5, 1.0, 1.5])
     s = np.array([0.0, 0.05, 0.1, 0.6, 1.0])[:, None]  # badly paced
     path = a0 + s * (a1 - a0)
-    out = geodesics.resample_path(t, f, h, path, b.weights, 9)
+    out = geodesics.resample_path(t, f, h, path, b.weights, 9, pace="metric")
     assert out.shape == (9, 4)
     assert np.array_equal(out[0], a0) and np.array_equal(out[-1], a1)
     lengths = geodesics.step_lengths(t, f, h, out, b.weights)
     before = geodesics.step_lengths(t, f, h, path, b.weights)
     assert lengths.std() < 0.05 * lengths.mean() < before.std()
+
+
+def _shape_steps(t, h, path):
+    verts = geodesics.decode_path(t, h, path)
+    return np.linalg.norm(np.diff(verts, axis=0), axis=2).mean(axis=1)
+
+
+def test_keyframes_are_paced_by_shape_change_where_the_metric_barely_sees_a_motion():
+    """A lift (a translation: only the a0 term sees it), then a bend of the limb: paced by the metric the
+    frames race through the lift and crawl through the bend; paced by shape (the default) every frame
+    moves the vertices by the same mean distance."""
+    b, _ = _limb_basis()
+    t, f, h = b.tensors()
+    path = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [1.5, 0.0, 1.0]])
+    metric = geodesics.resample_path(t, f, h, path, b.weights, 13, pace="metric")
+    steps = _shape_steps(t, h, metric)
+    assert steps.max() > 3 * steps.min()  # the defect: stalls, then snaps
+    shape = geodesics.resample_path(t, f, h, path, b.weights, 13)
+    steps = _shape_steps(t, h, shape)
+    assert steps.max() < 1.02 * steps.min()
+    assert np.array_equal(shape[0], path[0]) and np.array_equal(shape[-1], path[-1])
+    assert np.allclose(geodesics.vertex_step_lengths(t, h, shape), steps)
+    with pytest.raises(InputError, match="pace"):
+        geodesics.resample_path(t, f, h, path, b.weights, 5, pace="even")
 
 
 def test_cancellation_stops_the_solve_and_returns_nothing():

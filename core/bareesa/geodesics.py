@@ -118,21 +118,33 @@ def step_lengths(template, faces, fields, path, weights):
 RESAMPLE_REFINE = 4
 
 
-def resample_path(template, faces, fields, path, weights, n_frames, refine=RESAMPLE_REFINE):
-    """Resample a latent path to n_frames at constant metric speed: (T, P) -> (n_frames, P).
+#: How keyframes are paced along a path: "shape" places them at equal mean vertex displacement of the
+#: decoded meshes (what an artist sees), "metric" at equal Riemannian arc length. The two differ where
+#: the metric barely sees a motion that moves vertices far (a limb swinging nearly rigidly about a
+#: joint, a translation: only the a0 term sees it), and there metric pacing stalls, then snaps.
+PACES = ("shape", "metric")
 
-    Each step is first split into ``refine`` linear sub-steps so that the arc
-    length (measured with the latent metric) is accurate also where the metric
-    varies along a step; frames are then placed at equal arc length, so
-    keyframes come out evenly paced.
+
+def resample_path(template, faces, fields, path, weights, n_frames, refine=RESAMPLE_REFINE, pace="shape"):
+    """Resample a latent path to n_frames evenly paced frames: (T, P) -> (n_frames, P).
+
+    Each step is first split into ``refine`` linear sub-steps; frames are then placed at equal arc
+    length of the refined path, measured by ``pace``: "shape" (default) the mean vertex displacement
+    of the decoded meshes (exact on each linear sub-step, since the decoder is affine), "metric" the
+    latent metric (accurate also where the metric varies along a step).
     """
     path = np.asarray(path, dtype=np.float64)
     if n_frames < 2:
         raise InputError(f"need at least 2 frames, got {n_frames}")
+    if pace not in PACES:
+        raise InputError(f"pace must be one of {', '.join(PACES)}, got {pace!r}")
     u = np.linspace(0.0, 1.0, refine + 1)[:-1, None, None]
     dense = (path[:-1] + u * (path[1:] - path[:-1])).transpose(1, 0, 2).reshape(-1, path.shape[1])
     dense = np.concatenate([dense, path[-1:]])
-    lengths = step_lengths(template, faces, fields, dense, weights) / (dense.shape[0] - 1)
+    if pace == "metric":
+        lengths = step_lengths(template, faces, fields, dense, weights) / (dense.shape[0] - 1)
+    else:
+        lengths = vertex_step_lengths(template, fields, dense)
     s = np.concatenate([[0.0], np.cumsum(lengths)])
     if s[-1] <= 0:
         return np.repeat(path[:1], n_frames, axis=0)
@@ -142,6 +154,13 @@ def resample_path(template, faces, fields, path, weights, n_frames, refine=RESAM
     out = dense[k] + np.clip(frac, 0, 1)[:, None] * (dense[k + 1] - dense[k])
     out[0], out[-1] = path[0], path[-1]
     return out
+
+
+def vertex_step_lengths(template, fields, path):
+    """Mean vertex displacement of each step of a latent path: (T, P) -> (T - 1,) numpy, in the
+    template's units (the decoder is affine, so a linear step moves every vertex in a straight line)."""
+    verts = decode_path(template, fields, path)
+    return np.linalg.norm(np.diff(verts, axis=0), axis=2).mean(axis=1)
 
 
 #: an axis counts as spanned by a basis when the least-squares fit of a unit translation along
@@ -190,14 +209,14 @@ def anchor_path(template, fields, path, reference, fixed=(0, -1)):
     return out
 
 
-def keyframe_path(template, faces, fields, path, weights, n_frames, anchor=True):
+def keyframe_path(template, faces, fields, path, weights, n_frames, anchor=True, pace="shape"):
     """A solved latent path (T, P) as n_frames evenly paced keyframes (n_frames, P): anchored
     to the straight line between its ends (``anchor_path``, unless anchor is False), then
-    resampled at constant metric speed (``resample_path``)."""
+    resampled at constant speed (``resample_path``; ``pace`` "shape" or "metric")."""
     path = np.asarray(path, dtype=np.float64)
     if anchor:
         path = anchor_path(template, fields, path, straight_path(path[0], path[-1], len(path)))
-    return resample_path(template, faces, fields, path, weights, n_frames)
+    return resample_path(template, faces, fields, path, weights, n_frames, pace=pace)
 
 
 def decode_path(template, fields, path):
