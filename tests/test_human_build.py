@@ -124,3 +124,14 @@ def test_the_solver_never_imports_anny():
     for folder in ("core", "bareesa_addon", "tools"):
         for path in (root / folder).rglob("*.py"):
             assert "import anny" not in path.read_text() and "from anny" not in path.read_text(), path
+
+
+def test_the_shipped_human_basis_registers_with_the_builders_schedule():
+    """bases/human.npz stores HUMAN_SCHEDULE (the finest level's iteration cap raised, see its comment):
+    a card rewritten by hand or left at the paper's schedule fails here."""
+    from bareesa.basis_io import load_basis
+    from bareesa.latent import PAPER_BODY_SCHEDULE
+
+    shipped = tuple(load_basis("human").schedule)
+    assert shipped == tuple(human.HUMAN_SCHEDULE)
+    assert shipped[-1].max_iter > PAPER_BODY_SCHEDULE[-1].max_iter
