@@ -31,13 +31,12 @@ paper's construction). Group sizes are chosen by ``bench/human_ablation``.
 
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
 import scipy.sparse as sp
 
 from bareesa.basis_building import build_basis
-from dataclasses import replace
-
 from bareesa.latent import PAPER_BODY_SCHEDULE
 from bareesa.statistics import pose_prototypes
 
