@@ -276,6 +276,10 @@ def test_interpolate_keeps_the_default_body_planted_unless_no_anchor(capsys, tmp
     save_mesh(tmp_path / "up.ply", up, b.faces)
     feet = b.template[:, 2] < b.template[:, 2].min() + 0.05
     ends = np.array([b.template[:, 2].min(), up[:, 2].min()])
+    # frames are paced by shape change, not evenly in time: each frame's feet are compared with the
+    # closest point of the straight blend of the ends' feet
+    lam = np.linspace(0, 1, 201)[:, None, None]
+    blend = (1 - lam) * b.template[feet] + lam * up[feet]  # (201, feet, 3)
     overshoot, feet_off = {}, {}
     for name, extra in (("planted", []), ("free", ["--no-anchor"])):
         rc, _, err = run(capsys, "interpolate", tmp_path / "rest.ply", tmp_path / "up.ply", "--steps", "5",
@@ -284,10 +288,6 @@ def test_interpolate_keeps_the_default_body_planted_unless_no_anchor(capsys, tmp
         frames = np.stack([load_mesh(p)[0] for p in sorted((tmp_path / name).glob("frame_*.ply"))])
         lowest = frames[:, :, 2].min(1)
         overshoot[name] = max(lowest.max() - ends.max(), ends.min() - lowest.min())
-        # frames are paced by shape change, not evenly in time: compare each frame's feet with the
-        # closest point of the straight blend of the ends' feet
-        lam = np.linspace(0, 1, 201)[:, None, None]
-        blend = (1 - lam) * b.template[feet] + lam * up[feet]  # (201, feet, 3)
         feet_off[name] = max(np.abs(frame[feet] - blend).max(axis=(1, 2)).min() for frame in frames)
     assert overshoot["planted"] < 0.003 and overshoot["free"] > 0.01
     assert feet_off["free"] > 1.5 * feet_off["planted"]
