@@ -29,6 +29,7 @@ PROP_RESIDUAL = "bareesa_fit_residual"  # mean scan-to-surface distance over the
 PROP_POOR_FIT = "bareesa_poor_fit"      # the residual is far above the basis' own (its card's fit_check)
 PROP_KEY_SCALE = "bareesa_key_scale"    # per field key: it holds template + k_i h_i; its value is code_i / k_i
 PROP_RANGE = "bareesa_training_stds"    # how far a result's codes go from the training codes (in std)
+PROP_LANDMARK = "bareesa_landmark"      # on an Empty parented to a scan: the basis landmark it marks
 #: Blender limits shape-key sliders to [-10, 10]; larger codes use a key scale (see above).
 SLIDER_LIMIT = 10.0
 #: A code beyond this is a diverged solve, not a shape.
@@ -67,6 +68,27 @@ def evaluated_mesh(obj, depsgraph):
     mesh = evaluated.to_mesh()
     try:
         return _read_mesh(mesh)
+    finally:
+        evaluated.to_mesh_clear()
+
+
+def evaluated_mesh_with_mask(obj, depsgraph, group):
+    """``evaluated_mesh`` plus per-face weights from the vertex group ``group`` (1 = ignore):
+    -> verts (N, 3), tris (F, 3), face weights (F,) = 1 - mean vertex weight, or None without the group."""
+    require_mesh(obj)
+    evaluated = obj.evaluated_get(depsgraph)
+    mesh = evaluated.to_mesh()
+    try:
+        verts, tris = _read_mesh(mesh)
+        vg = obj.vertex_groups.get(group) if group else None
+        if vg is None:
+            return verts, tris, None
+        ignore = np.zeros(len(verts))
+        for v in mesh.vertices:
+            for g in v.groups:
+                if g.group == vg.index:
+                    ignore[v.index] = g.weight
+        return verts, tris, np.clip(1.0 - ignore[tris].mean(1), 0.0, 1.0)
     finally:
         evaluated.to_mesh_clear()
 

@@ -6,6 +6,7 @@ from . import jobs
 from .convert import PROP_BASIS, PROP_BASIS_NAME, PROP_CHAMFER, PROP_POOR_FIT, PROP_RANGE, PROP_VARIFOLD
 from .operators.common import TRAINING_STDS
 from .preferences import dependency_status
+from .properties import OTHER_BASIS
 
 
 def length_text(context, value):
@@ -67,7 +68,11 @@ class BAREESA_PT_basis(_Section, bpy.types.Panel):
         s = context.scene.bareesa
         layout = split(self.layout)
         col = layout.column()
-        col.prop(s, "basis")
+        col.prop(s, "basis_choice")
+        if s.basis_choice == OTHER_BASIS:
+            col.prop(s, "basis_file")
+            if s.basis and s.basis != s.basis_file:
+                col.label(text=f"Now: {s.basis}", icon="FILE")
         col.prop(s, "metric")
         if s.metric == "CUSTOM":
             col.prop(s, "metric_custom")
@@ -84,6 +89,12 @@ class BAREESA_PT_register(_Section, bpy.types.Panel):
         col = layout.column()
         col.prop(s, "schedule")
         col.prop(s, "prealign")
+        obj = context.active_object
+        if obj is not None and obj.type == "MESH":
+            col.prop_search(s, "mask_group", obj, "vertex_groups")
+        else:
+            col.prop(s, "mask_group")
+        layout.operator("bareesa.add_landmarks", icon="EMPTY_AXIS")
         n = sum(o.type == "MESH" for o in context.selected_objects)
         layout.operator("bareesa.register_scan", text=f"Register {n} Selected" if n else "Register Selected",
                         icon="MOD_SHRINKWRAP")

@@ -3,7 +3,45 @@
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
+from . import solver
+from .preferences import user_bases_dir
 from .solver import SCHEDULE_PRESETS
+
+#: The Basis menu's entry for a file chosen with the file browser.
+OTHER_BASIS = "__FILE__"
+#: Blender keeps only pointers to the strings of dynamic enum items: they must outlive the callback.
+_BASIS_ITEMS = []
+
+
+def basis_items(_self, _context):
+    """The Basis menu: bundled and user bases by name (their card's summary as tooltip), then a file."""
+    try:
+        catalogue = solver.basis_catalogue(user_bases_dir())
+    except solver.DependencyError:
+        catalogue = []
+    items = [(name, name, summary, k) for k, (name, summary) in enumerate(catalogue)]
+    items.append((OTHER_BASIS, "Other File...", "An .npz basis file, chosen below", len(items)))
+    _BASIS_ITEMS[:] = items
+    return _BASIS_ITEMS
+
+
+def _get_basis_choice(self):
+    items = basis_items(self, None)
+    by_name = {item[0]: item[3] for item in items}
+    return by_name.get(self.basis, by_name[OTHER_BASIS])
+
+
+def _set_basis_choice(self, value):
+    name = next((item[0] for item in basis_items(self, None) if item[3] == value), OTHER_BASIS)
+    if name != OTHER_BASIS:
+        self.basis = name
+    elif self.basis_file:
+        self.basis = self.basis_file
+
+
+def _basis_file_chosen(self, _context):
+    if self.basis_file:
+        self.basis = self.basis_file
 
 METRIC_PRESETS = (
     ("BASIS", "Basis", "The metric weights stored with the basis"),
@@ -30,6 +68,10 @@ class BareEsaSettings(bpy.types.PropertyGroup):
     basis: StringProperty(name="Basis", default="human",
                           description="A bundled basis name (human, deformables), a basis saved in the user's "
                                       "bases directory, or a path to an .npz basis file")
+    basis_choice: EnumProperty(name="Basis", items=basis_items, get=_get_basis_choice, set=_set_basis_choice,
+                               description="The basis to use: a bundled one, one you built, or a file")
+    basis_file: StringProperty(name="File", subtype="FILE_PATH", default="", update=_basis_file_chosen,
+                               description="An .npz basis file (when the Basis menu says Other File)")
     metric: EnumProperty(name="Metric", items=METRIC_PRESETS, default="BASIS",
                          description="Weights of the invariant H2 metric")
     metric_custom: StringProperty(name="Weights", default="1,1000,100,1,1,1",
@@ -41,6 +83,9 @@ class BareEsaSettings(bpy.types.PropertyGroup):
     prealign: BoolProperty(name="Pre-align", default=True,
                            description="Find the scan's rotation, position and scale first (off: the scan is "
                                        "already in the template's frame)")
+    mask_group: StringProperty(name="Ignore Group", default="bareesa_ignore",
+                               description="Vertex group of a scan whose weights say what to ignore (1: ignore, "
+                                           "e.g. a floor, a wall, supports, hair); scans without it are used whole")
     # Interpolate / extrapolate
     object_a: PointerProperty(name="From", type=bpy.types.Object, poll=_is_mesh,
                               description="Start of the path (empty: the selected object that is not active)")

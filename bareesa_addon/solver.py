@@ -55,6 +55,35 @@ def resolve_basis(reference, user_dir=None):
     return reference
 
 
+def card_summary(card):
+    """One line saying what a basis is, from its card (dict): e.g. '6276 vertices, 140 fields (pose 100,
+    shape 40), 21 landmarks'."""
+    groups = ", ".join(f"{g} {b - a}" for g, (a, b) in card.get("groups", {}).items())
+    text = f"{card.get('n_vertices', '?')} vertices, {card.get('n_fields', '?')} fields"
+    text += f" ({groups})" if groups else ""
+    n_marks = len(card.get("landmarks", {}))
+    return text + (f", {n_marks} landmarks" if n_marks else "")
+
+
+def basis_catalogue(user_dir=None):
+    """The bases a user can pick by name, bundled ones first then those saved in ``user_dir``:
+    -> [(name, one-line summary)] (summaries from the .json cards beside the files; no basis is loaded)."""
+    import json
+
+    found = {}
+    folders = module("basis_io").basis_search_path() + ([Path(user_dir)] if user_dir else [])
+    for folder in folders:
+        for npz in sorted(Path(folder).glob("*.npz")):
+            if npz.stem in found:
+                continue
+            try:
+                summary = card_summary(json.loads(npz.with_suffix(".json").read_text()))
+            except (OSError, ValueError):
+                summary = str(npz)
+            found[npz.stem] = summary
+    return list(found.items())
+
+
 def load_basis(reference, user_dir=None):
     """Load (cached by file and modification time) a basis: -> (Basis, resolved path string)."""
     basis_io = module("basis_io")

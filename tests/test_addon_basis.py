@@ -148,6 +148,10 @@ class FakeLayout:
         self.drawn.append(name)
         return self
 
+    def prop_search(self, data, name, search_data, search_name, **kwargs):
+        assert search_name in search_data.bl_rna.properties, f"no collection {search_name!r} on {search_data}"
+        return self.prop(data, name)
+
     def operator(self, idname, **kwargs):
         module, op = idname.split(".")
         assert hasattr(getattr(bpy.ops, module), op), idname
@@ -163,9 +167,10 @@ def test_every_panel_section_draws_existing_properties_and_operators(scene, tiny
         panel = bpy.types.Panel.bl_rna_get_subclass_py(name)
         panel.draw(type("P", (), {"layout": FakeLayout(drawn)})(), bpy.context)
     for op in ("bareesa.load_template", "bareesa.register_scan", "bareesa.interpolate", "bareesa.extrapolate",
-               "bareesa.transfer_motion", "bareesa.generate_random", "bareesa.build_basis", "bareesa.distance"):
+               "bareesa.transfer_motion", "bareesa.generate_random", "bareesa.build_basis", "bareesa.distance",
+               "bareesa.add_landmarks"):
         assert op in drawn
-    assert {"basis", "schedule", "steps", "frame_start", "frame_end", "seed", "metric"} <= set(drawn)
+    assert {"basis_choice", "basis_file", "mask_group", "schedule", "steps", "frame_start", "frame_end", "seed", "metric"} <= set(drawn)
 
 
 def test_template_uvs_of_a_basis_become_the_uv_map_of_its_objects(scene, tiny, tmp_path):

@@ -123,12 +123,52 @@ def common_basis(context, objects):
     return load_basis(settings(context).basis)
 
 
+def landmark_empties(scan):
+    """The landmark Empties of a scan (children with ``PROP_LANDMARK``), visible or not: -> list."""
+    return [o for o in scan.children if o.type == "EMPTY" and o.get(cv.PROP_LANDMARK)]
+
+
+def scan_landmarks(scan):
+    """Where the scan's visible landmark Empties are, in the scan's local frame: -> {name: (x, y, z)}.
+
+    Hidden Empties (or Empties in a hidden collection) are not used; deleted ones are gone."""
+    inverse = scan.matrix_world.inverted()
+    points, where = {}, {}
+    for empty in landmark_empties(scan):
+        if not empty.visible_get():
+            continue
+        name = str(empty[cv.PROP_LANDMARK])
+        if name in points:
+            raise cv.ConversionError(f"scan '{scan.name}' has two visible '{name}' landmarks ('{where[name]}' and "
+                                     f"'{empty.name}'): delete or hide one")
+        points[name], where[name] = tuple(inverse @ empty.matrix_world.translation), empty.name
+    return points
+
+
+def scan_input(context, obj, basis):
+    """A scan as the solver takes it: its evaluated mesh, the panel's ignore mask (vertex group) as face
+    weights and its visible landmark Empties: -> workflows.Scan."""
+    verts, tris, weights = cv.evaluated_mesh_with_mask(obj, context.evaluated_depsgraph_get(),
+                                                       settings(context).mask_group)
+    if weights is not None and not (weights > 0).any():
+        raise cv.ConversionError(f"the ignore group '{settings(context).mask_group}' of '{obj.name}' covers the "
+                                 "whole scan: nothing is left to register")
+    points = scan_landmarks(obj)
+    marks = None
+    if points:
+        try:
+            marks = solver.module("landmarks").scan_landmarks(basis, points)
+        except solver.module("errors").InputError as err:
+            raise cv.ConversionError(f"'{obj.name}': {err}") from None
+    return workflows().Scan(verts, tris, face_weights=weights, landmarks=marks)
+
+
 def object_input(context, obj, basis):
     """The workflow input of an object as it is now: KnownCode if registered (checked against basis), else Scan."""
     wf = workflows()
     if is_registered(obj):
         return wf.KnownCode(registered_code(obj, basis, solver.field_names(basis)))
-    return wf.Scan(*cv.evaluated_mesh(obj, context.evaluated_depsgraph_get()))
+    return scan_input(context, obj, basis)
 
 
 #: The training range of a code: mean +- this many standard deviations of the basis' training codes

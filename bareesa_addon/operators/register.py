@@ -5,8 +5,8 @@ from bpy.props import StringProperty
 
 from .. import convert as cv
 from ..jobs import SolveOperator, Task
-from .common import (add_registered, check_codes, find_object, load_basis, refuse, select_only, selected_meshes,
-                     settings, solve_options, workflows)
+from .common import (add_registered, check_codes, find_object, load_basis, refuse, scan_input, select_only,
+                     selected_meshes, settings, solve_options, workflows)
 
 
 class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
@@ -29,8 +29,8 @@ class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
             raise cv.ConversionError("select one or more scan meshes to register"
                                      + (f" (not meshes: {', '.join(skipped)})" if skipped else ""))
         basis, ref = load_basis(self.basis or settings(context).basis)
-        wf, depsgraph = workflows(), context.evaluated_depsgraph_get()
-        inputs = [wf.Scan(*cv.evaluated_mesh(o, depsgraph)) for o in scans]
+        wf = workflows()
+        inputs = [scan_input(context, o, basis) for o in scans]
         names = [o.name for o in scans]
         options = solve_options(context, basis)
 

@@ -22,6 +22,7 @@ from bareesa.mesh import validate_mesh
 
 from .blender import bake, mesh_object, reset_scene
 from .common import elastic_paths, fit_basis_distribution, topology_signature
+from .landmarks import LANDMARK_NOTES, deformables_landmarks
 
 NAME = "deformables"
 SEGMENTS = 24
@@ -160,7 +161,9 @@ def build(pose_components=16, shape_components=4, log=print):
                   "frames_per_motion": FRAMES, "topology": topology_signature(faces)}
     basis = build_basis(template, faces, {"pose": list(data["sequences"].values()), "shape": shape_seqs},
                         {"pose": pose_components, "shape": shape_components}, weights="body", name=NAME,
-                        units="", schedule=SCHEDULE, provenance=provenance)
+                        units="", schedule=SCHEDULE, provenance=provenance,
+                        landmarks=deformables_landmarks(template))
+    basis.provenance["landmarks"] = LANDMARK_NOTES[NAME]
     basis.provenance["groups"]["shape"]["construction"] = "elastic H2 geodesics template -> identity (4 meshes)"
     log("deformables: fitting the distribution of initial velocities")
     frames = np.concatenate([s[1:] for s in data["sequences"].values()])

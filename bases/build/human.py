@@ -41,6 +41,7 @@ from bareesa.latent import PAPER_BODY_SCHEDULE
 from bareesa.statistics import pose_prototypes
 
 from .common import checked_template, elastic_paths, fit_basis_distribution, topology_signature
+from .landmarks import LANDMARK_NOTES, human_landmarks
 from .motions import HUMAN_TEST_MOTIONS, HUMAN_TRAIN_MOTIONS, pose_at
 
 NAME = "human"
@@ -462,7 +463,9 @@ def build(pose_components=POSE_COMPONENTS, shape_components=SHAPE_COMPONENTS, lo
     log("human: PCA")
     basis = build_basis(template, faces, {"pose": list(data["sequences"].values()), "shape": shape_paths},
                         {"pose": pose_components, "shape": shape_components}, weights="body", scale=height,
-                        name=NAME, units="m", schedule=HUMAN_SCHEDULE, provenance=provenance)
+                        name=NAME, units="m", schedule=HUMAN_SCHEDULE, provenance=provenance,
+                        landmarks=human_landmarks(template))
+    basis.provenance["landmarks"] = LANDMARK_NOTES[NAME]
     basis.provenance["groups"]["shape"]["construction"] = "elastic H2 geodesics template -> identity (3 meshes)"
     if human is not None:
         basis.extras["template_uv"] = human.uv

@@ -63,13 +63,13 @@ def sequence_tangents(sequences):
 
 def build_basis(template, faces, groups, components, weights="body", scale=None, name="basis",
                 units="", schedule=PAPER_BODY_SCHEDULE, provenance=None, elastic=(), elastic_steps=5,
-                callback=None, cancel=None):
+                callback=None, cancel=None, landmarks=None):
     """PCA basis from registered 4D data (paper section 5.2).
 
     groups: {name: list of sequences (T_i, N, 3)} in template topology;
     components: {name: K} the number of fields kept per group; groups named in
     ``elastic`` use the steps of parametrised H2 geodesics between consecutive
-    meshes instead of plain differences (the paper's shape basis).
+    meshes instead of plain differences (the paper's shape basis); landmarks: {name: template vertex}.
     """
     template = np.asarray(template, dtype=np.float64)
     unknown = set(elastic) - set(groups)
@@ -104,7 +104,8 @@ def build_basis(template, faces, groups, components, weights="body", scale=None,
     prov = dict(provenance or {})
     prov["groups"] = report
     return Basis(template=template, faces=np.asarray(faces), fields=np.concatenate(blocks), groups=ranges,
-                 weights=weights, schedule=schedule, scale=scale, name=name, units=units, provenance=prov)
+                 weights=weights, schedule=schedule, scale=scale, name=name, units=units, provenance=prov,
+                 landmarks=landmarks or {})
 
 
 #: Meshes up to this many vertices get the metric-whitened solver (dense 3N x 3N metric matrix).

@@ -22,6 +22,7 @@ from .errors import BareEsaError, InputError
 from .evaluation import mesh_metrics, vertex_error
 from .geodesics import decode_path
 from .h2_metric import H2Weights, path_energy
+from .landmarks import read_scan_landmarks, read_template_landmarks
 from .mesh import load_mesh, save_mesh, validate_mesh
 from .progress import tqdm_callback
 from .scan_simulator import add_simulate_scan_arguments, apply_similarity, simulate_scan, simulate_scan_cli
@@ -135,9 +136,10 @@ def cmd_build_basis(args):
             sequences[group].append(np.stack(frames))
     provenance = {"template": str(args.template),
                   "sequences": {g: [[str(p) for p in files] for files in s] for g, s in groups.items()}}
+    landmarks = read_template_landmarks(args.landmarks, len(template)) if args.landmarks else None
     basis = build_basis(template, faces, sequences, components, weights=args.metric,
                         name=args.name or args.output.stem, units=args.units, provenance=provenance,
-                        elastic=tuple(args.elastic or ()))
+                        elastic=tuple(args.elastic or ()), landmarks=landmarks)
     if not args.no_distribution:
 
         basis.extras.update(fit_training_distribution(basis, [f for s in sequences.values() for f in s]))
@@ -247,33 +249,12 @@ def cmd_sample(args):
            args.json, "random shapes")
 
 
-def load_landmarks(path):
-    """Landmarks file -> [(template vertex, (x, y, z), weight)]: JSON list or CSV lines vertex,x,y,z[,weight]."""
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"landmarks file {path} does not exist")
-    text = path.read_text()
-    try:
-        rows = json.loads(text) if path.suffix == ".json" else [
-            [float(x) for x in line.replace(";", ",").split(",")]
-            for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
-    except ValueError as err:
-        raise InputError(f"cannot read landmarks from {path}: {err}") from None
-    out = []
-    for k, row in enumerate(rows):
-        flat = [row[0], *row[1]] + list(row[2:]) if len(row) >= 2 and isinstance(row[1], (list, tuple)) else list(row)
-        if len(flat) not in (4, 5) or float(flat[0]) != int(flat[0]):
-            raise InputError(f"{path}: landmark {k + 1} must be 'vertex, x, y, z[, weight]', got {row}")
-        out.append((int(flat[0]), tuple(float(x) for x in flat[1:4]), float(flat[4]) if len(flat) == 5 else 1.0))
-    return out
-
-
 def cmd_register(args):
     """Latent code of a raw scan; writes the registered mesh (template topology, scan's frame)."""
     basis = load_basis(args.basis)
     verts, faces = load_mesh(args.scan)
     validate_mesh(verts, faces, name=str(args.scan))
-    landmarks = load_landmarks(args.landmarks) if args.landmarks else None
+    landmarks = read_scan_landmarks(args.landmarks, basis) if args.landmarks else None
     callback, close = tqdm_callback("register", disable=args.json or None)
     try:
         res = code_of(basis, Scan(verts, faces, landmarks=landmarks), callback=callback).registration
@@ -424,7 +405,9 @@ def build_parser():
     p.add_argument("scan", type=Path)
     p.add_argument("--basis", default=DEFAULT_BASIS, help=f"bundled basis name or .npz path (default: {DEFAULT_BASIS})")
     p.add_argument("-o", "--output", type=Path, required=True, help="registered mesh (template topology)")
-    p.add_argument("--landmarks", type=Path, help="JSON or CSV: template vertex, x, y, z[, weight] per line")
+    p.add_argument("--landmarks", type=Path,
+                   help="where the basis' named landmarks are on the scan: JSON {name: [x, y, z]} or CSV lines "
+                        "'name, x, y, z[, weight]' (a template vertex index may stand for a name)")
     p.add_argument("--json", action="store_true", help="print JSON (code, varifold, chamfer, seconds, levels)")
     p.set_defaults(func=cmd_register)
 
@@ -454,6 +437,8 @@ def build_parser():
                    help="build GROUP from elastic H2 geodesics between consecutive frames (paper's shape basis)")
     p.add_argument("--no-distribution", action="store_true",
                    help="do not fit the Gaussian mixture on the training frames used by 'sample'")
+    p.add_argument("--landmarks", type=Path, metavar="FILE",
+                   help="named landmarks of the template: JSON {name: vertex index} or CSV lines 'name, vertex'")
     p.add_argument("--name", default=None)
     p.add_argument("--units", default="m")
     p.add_argument("-o", "--output", type=Path, required=True)

@@ -71,6 +71,8 @@ class Basis:
     #: how a registration's residual compares with the basis' own (``registration.multiscale``):
     #: {"poor_fit_above": threshold, "held_out_p95": ..., "scans": n, "measured_by": ...}; {} uncalibrated
     fit_check: dict = field(default_factory=dict)
+    #: named anatomical landmarks of the template: {name: template vertex index}; {} none
+    landmarks: dict = field(default_factory=dict)
 
     def __post_init__(self):
         validate_basis(self)
@@ -114,7 +116,8 @@ class Basis:
                 "metric": list(self.weights.as_tuple()),
                 "schedule": [asdict(lv) for lv in self.schedule],
                 "scale": float(self.scale), "units": self.units, "provenance": self.provenance,
-                **({"fit_check": self.fit_check} if self.fit_check else {})}
+                **({"fit_check": self.fit_check} if self.fit_check else {}),
+                **({"landmarks": self.landmarks} if self.landmarks else {})}
 
 
 def validate_basis(b):
@@ -141,6 +144,13 @@ def validate_basis(b):
         raise InputError(f"basis '{b.name}': groups must cover every field exactly once")
     if not b.scale > 0:
         raise InputError(f"basis '{b.name}': reference scale must be positive, got {b.scale}")
+    for name, vertex in (b.landmarks or {}).items():
+        if not (isinstance(name, str) and name.strip()):
+            raise InputError(f"basis '{b.name}': landmark names must be non-empty strings, got {name!r}")
+        if isinstance(vertex, bool) or not isinstance(vertex, (int, np.integer)) or not 0 <= vertex < t.shape[0]:
+            raise InputError(f"basis '{b.name}': landmark '{name}' must be a template vertex index in "
+                             f"0..{t.shape[0] - 1}, got {vertex!r}")
+    b.landmarks = {str(k): int(v) for k, v in (b.landmarks or {}).items()}
     b.template = t.astype(np.float64)
     b.fields = h.astype(np.float64)  # bases may be stored in float16/float32; compute in float64
     b.faces = f.astype(np.int64)

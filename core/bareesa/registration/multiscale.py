@@ -23,7 +23,7 @@ from ..mesh import face_geometry, validate_mesh
 from ..progress import Monitor
 from ..transforms import Similarity
 from .poses import POSE_FINALISTS, POSE_ITER, check_pose_candidates, try_poses
-from .prealign import PREALIGN_RATIO, prealign_candidates, surface_moments
+from .prealign import PREALIGN_RATIO, landmark_alignment, prealign_candidates, surface_moments
 from .problem import RegistrationProblem
 
 SCREEN_DIVISOR = 8          # candidate alignments are screened with 1/8 of the first level's iterations
@@ -215,6 +215,10 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
         candidates = prealign_candidates(basis.template, basis.faces, sv, sf, face_w, monitor=monitor,
                                          progress=(0.0, PREALIGN_FRACTION))
         candidates = [c for c in candidates if c[0] <= PREALIGN_RATIO * candidates[0][0] + 1e-12]
+        if marks is not None:  # three or more landmarks fix the orientation the surfaces alone may not
+            by_marks = landmark_alignment(basis.template[marks[0]], marks[1], marks[2])
+            if by_marks is not None:
+                candidates = [(0.0, by_marks)] + candidates
     else:
         candidates = [(0.0, Similarity())]
     problem = RegistrationProblem(basis, sv, sf, face_w, marks, landmark_weight, metric, kernel, backend, binning,

@@ -163,3 +163,27 @@ def align_to_template(template_verts, template_faces, scan_verts, scan_faces, sc
     """
     return prealign_candidates(template_verts, template_faces, scan_verts, scan_faces, scan_face_weights,
                                keep=1, monitor=monitor, progress=progress)[0][1]
+
+
+def landmark_alignment(template_points, scan_points, weights=None):
+    """The similarity mapping scan points onto template points in the weighted least-squares sense
+    (Umeyama's closed form): (L, 3), (L, 3), (L,) -> Similarity, or None when the weighted points
+    span less than a plane (fewer than 3 non-collinear landmarks fix no rotation)."""
+    p, q = np.asarray(scan_points, np.float64), np.asarray(template_points, np.float64)
+    w = np.ones(len(p)) if weights is None else np.asarray(weights, np.float64)
+    use = w > 0
+    if use.sum() < 3:
+        return None
+    p, q, w = p[use], q[use], w[use] / w[use].sum()
+    mp, mq = w @ p, w @ q
+    dp, dq = p - mp, q - mq
+    spread = np.linalg.svd(dp * np.sqrt(w)[:, None], compute_uv=False)
+    if spread[1] <= 1e-6 * max(spread[0], 1e-300):
+        return None
+    u, s, vt = np.linalg.svd((dq * w[:, None]).T @ dp)
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0])
+    rotation = u @ d @ vt
+    scale = float(np.trace(np.diag(s) @ d) / (w @ (dp ** 2).sum(1)))
+    if not scale > 0:
+        return None
+    return Similarity(rotation, scale, mq - scale * rotation @ mp)

@@ -177,8 +177,8 @@ class RegistrationProblem:
                                                self.metric))
 
     def screen_score(self, level, code, transform, energy):
-        """weight * Gamma + energy of a solved path at ``level``'s sigma and weight, Gamma on a
-        binning of both surfaces with cells of SCREEN_CELL x sigma.
+        """weight * (Gamma + landmark term) + energy of a solved path at ``level``'s sigma and weight,
+        Gamma on a binning of both surfaces with cells of SCREEN_CELL x sigma.
 
         A level's objective bins with cells of BIN_CELL x sigma; its error (a difference of large
         kernel sums) depends on how each alignment falls on the cells, enough to rank a wrong
@@ -192,7 +192,11 @@ class RegistrationProblem:
             final = decode(self.template, self.fields, code)
             loss = BinnedVarifoldLoss(final, self.faces, target, self.scan_faces, sigma, self.kernel,
                                       self.scan_weights, cell=SCREEN_CELL * sigma, backend=self.backend)
-            return level.weight * float(loss(final, self.faces)) + energy
+            fit = loss(final, self.faces)
+            if self.marks is not None:
+                lm_pts = torch.as_tensor(transform.apply(self.marks[1]), dtype=self.dtype, device=self.device)
+                fit = fit + (self.lm_w * ((final[self.lm_idx] - lm_pts) ** 2).sum(1)).sum()
+            return level.weight * float(fit) + energy
 
     def solve_level(self, level, path, transform, progress, message):
         """Minimise one level from path (T0+1, P) and the alignment -> (path (T+1, P), alignment, report)."""
