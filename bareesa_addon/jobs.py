@@ -33,6 +33,11 @@ class Task:
     title: str
     solve: Callable  # solve(callback, cancel) -> result
     apply: Callable  # apply(context, result) -> message for the info report
+    #: live preview while the solve runs from the interface: show(context, preview dict) on the main
+    #: thread for the newest preview of a progress event; clear(context) removes what show made (before
+    #: apply, or when the solve fails or is cancelled). None: no preview.
+    show: Callable | None = None
+    clear: Callable | None = None
 
 
 def new_token():
@@ -50,9 +55,15 @@ class Job:
         self.result = self.error = None
         self._thread = None
         self._printed = -1.0
+        self.previews = {}  # newest preview per input ("item"), handed from the solve's thread
+        self.previews_version = 0
 
     def _callback(self, event):
         self.fraction, self.message = float(event.fraction), event.message or self.title
+        preview = getattr(event, "preview", None)
+        if preview is not None:
+            self.previews = {**self.previews, preview.get("item", 0): preview}  # a new dict: one atomic swap
+            self.previews_version += 1
         if self.echo and (self.fraction - self._printed >= 0.1 or self.fraction >= 1.0 > self._printed):
             self._printed = self.fraction
             print(f"BaRe-ESA: {self.title}: {self.fraction:4.0%} {event.message}", flush=True)
@@ -150,6 +161,7 @@ class SolveOperator:
         if task is None:
             return {"CANCELLED"}
         self._task, self._job = task, Job(task.title, task.solve)
+        self._shown = 0
         wm = context.window_manager
         self._timer = wm.event_timer_add(0.2, window=context.window)
         wm.modal_handler_add(self)
@@ -168,6 +180,13 @@ class SolveOperator:
         if event.type != "TIMER":
             return {"PASS_THROUGH"}  # the interface stays usable while the solve runs
         context.window_manager.progress_update(int(100 * job.fraction))
+        if not job.done and self._task.show is not None and job.previews_version != self._shown:
+            self._shown = job.previews_version
+            try:
+                for preview in job.previews.values():
+                    self._task.show(context, preview)
+            except Exception as err:  # a preview must never stop the solve
+                print(f"BaRe-ESA: preview failed: {type(err).__name__}: {err}", file=sys.stderr)
         if not job.done:
             _status(context, f"BaRe-ESA: {job.message} {job.fraction:.0%} (Esc to cancel)")
             for area in context.screen.areas if context.screen else ():
@@ -186,6 +205,8 @@ class SolveOperator:
         return outcome
 
     def _finish(self, context, task, job):
+        if task.clear is not None:
+            task.clear(context)
         err = job.error
         if err is not None:
             if type(err).__name__ == "SolveCancelled":

@@ -237,6 +237,13 @@ def template_object(context, basis, ref, name, collection=None, code=None, hint=
     return obj
 
 
+def write_code(obj, basis, code):
+    """Set an object's field keys to a code (P,), enlarging its key scale first when needed."""
+    names = solver.field_names(basis)
+    cv.fit_range(obj, names, basis.template, basis.fields, cv.check_code(code))
+    cv.set_code(obj, names, code)
+
+
 def write_keys(obj, basis, frames, codes, replace=True):
     """Keyframe codes (T, P) on frames (T,), enlarging the object's key scale first when needed."""
     names = solver.field_names(basis)

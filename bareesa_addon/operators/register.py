@@ -6,7 +6,7 @@ from bpy.props import StringProperty
 from .. import convert as cv
 from ..jobs import SolveOperator, Task
 from .common import (add_registered, check_codes, find_object, load_basis, refuse, scan_input, select_only,
-                     selected_meshes, settings, solve_options, workflows)
+                     selected_meshes, settings, solve_options, template_object, workflows, write_code)
 
 
 class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
@@ -37,6 +37,34 @@ class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
         def solve(callback, cancel):
             return wf.codes_of(basis, inputs, options, callback, cancel)
 
+        shown = {}  # input index -> name of its preview object
+
+        def show(context, preview):
+            """The fit so far as a '<scan>_registered (preview)' object over its scan."""
+            item = preview.get("item", 0)
+            scan = bpy.data.objects.get(names[item])
+            if scan is None:
+                return
+            obj = bpy.data.objects.get(shown.get(item, ""))
+            if obj is None:
+                obj = template_object(context, basis, ref, f"{names[item]}_registered (preview)",
+                                      scan.users_collection[0] if scan.users_collection else None)
+                obj.display_type = "WIRE"
+                obj.hide_select = True
+                shown[item] = obj.name
+            write_code(obj, basis, preview["code"])
+            obj.matrix_world = scan.matrix_world @ cv.similarity_inverse_matrix(preview["transform"])
+
+        def clear(context):
+            for name in shown.values():
+                obj = bpy.data.objects.get(name)
+                if obj is not None:
+                    mesh = obj.data
+                    bpy.data.objects.remove(obj)
+                    if mesh is not None and mesh.users == 0:
+                        bpy.data.meshes.remove(mesh)
+            shown.clear()
+
         def apply(context, codes):
             check_codes(codes)
             scan_objects = [find_object(n) for n in names]
@@ -53,4 +81,4 @@ class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
             return "; ".join(f"{o.name}: varifold {c.registration.varifold:.3g}, Chamfer {c.registration.chamfer:.3g}"
                              for o, c in zip(made, codes))
 
-        return Task(f"register {len(scans)} scan{'s' * (len(scans) > 1)}", solve, apply)
+        return Task(f"register {len(scans)} scan{'s' * (len(scans) > 1)}", solve, apply, show, clear)

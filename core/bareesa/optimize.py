@@ -8,13 +8,14 @@ from .errors import SolveDiverged
 
 
 def minimize_lbfgs(objective, x0, monitor=None, max_iter=200, progress=(0.0, 1.0), message="",
-                   gtol=1e-10, ftol=1e-12, plateau=None):
+                   gtol=1e-10, ftol=1e-12, plateau=None, preview=None):
     """Minimise ``objective(x: torch float64 tensor) -> scalar tensor`` from x0 (n,) numpy.
 
     Returns (x (n,) numpy, final value, number of iterations). The monitor's
     cancel token is checked at every evaluation; progress is reported as
     iterations advance within the ``progress`` fraction range. plateau (window k, rtol r):
     also stop once the objective fell by less than r * |objective| over the last k iterations.
+    preview (every k, x -> dict): every k iterations the progress report carries preview(x).
     """
     x0 = np.ascontiguousarray(x0, dtype=np.float64)
     state = {"it": 0, "value": None}
@@ -39,7 +40,11 @@ def minimize_lbfgs(objective, x0, monitor=None, max_iter=200, progress=(0.0, 1.0
         if monitor is not None:
             monitor.check()
             lo, hi = progress
-            monitor.report(lo + (hi - lo) * state["it"] / max_iter, f"{message} it {state['it']}", state["value"])
+            shown = None
+            if preview is not None and state["it"] % preview[0] == 0:
+                shown = preview[1](np.asarray(intermediate_result.x))
+            monitor.report(lo + (hi - lo) * state["it"] / max_iter, f"{message} it {state['it']}", state["value"],
+                           shown)
         if plateau is not None:
             window, rtol = plateau
             history.append(float(intermediate_result.fun))

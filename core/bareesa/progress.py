@@ -13,12 +13,15 @@ from .errors import SolveCancelled
 
 @dataclass(frozen=True)
 class ProgressEvent:
-    """fraction in [0, 1] of the whole task, a short message, the current energy if any."""
+    """fraction in [0, 1] of the whole task, a short message, the current energy if any, and a
+    preview of the result so far if the solver has one (a registration: {"code": (P,),
+    "transform": Similarity}, plus "item": its index when several inputs are solved)."""
 
     task: str
     fraction: float
     message: str = ""
     energy: float | None = None
+    preview: dict | None = None
 
 
 class CancelToken:
@@ -46,20 +49,31 @@ class Monitor:
     def __init__(self, task, callback=None, cancel=None):
         self.task, self.callback, self.cancel = task, callback, cancel
 
-    def report(self, fraction, message="", energy=None):
+    def report(self, fraction, message="", energy=None, preview=None):
         if self.callback is not None:
             self.callback(ProgressEvent(self.task, min(max(float(fraction), 0.0), 1.0), message,
-                                        None if energy is None else float(energy)))
+                                        None if energy is None else float(energy), preview))
+
+    @property
+    def wants_preview(self):
+        """Whether anyone listens (a solver skips building previews otherwise)."""
+        return self.callback is not None
 
     def check(self):
         if self.cancel is not None:
             self.cancel.check()
 
-    def scaled(self, lo, hi):
-        """A callback for a sub-task that reports into [lo, hi] of this task (or None)."""
+    def scaled(self, lo, hi, tag=None):
+        """A callback for a sub-task that reports into [lo, hi] of this task (or None); ``tag`` (a dict)
+        is merged into the sub-task's previews (e.g. which input they belong to)."""
         if self.callback is None:
             return None
-        return lambda event: self.report(lo + (hi - lo) * event.fraction, event.message, event.energy)
+
+        def forward(event):
+            preview = event.preview if tag is None or event.preview is None else {**event.preview, **tag}
+            self.report(lo + (hi - lo) * event.fraction, event.message, event.energy, preview)
+
+        return forward
 
 
 def tqdm_callback(desc, disable=None):

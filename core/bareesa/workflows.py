@@ -133,7 +133,7 @@ def codes_of(basis, items, options=Options(), callback=None, cancel=None):
         sub = None
         if i in scans:
             k = scans.index(i)
-            sub = monitor.scaled(k / len(scans), (k + 1) / len(scans))
+            sub = monitor.scaled(k / len(scans), (k + 1) / len(scans), tag={"item": i})
         out.append(code_of(basis, item, options, sub, cancel))
     return out
 

@@ -40,6 +40,8 @@ SCALE_LOG_LIMIT = math.log(1.15)
 SCREEN_CELL = 0.25
 #: L-BFGS steps of the re-alignment of a candidate start (``RegistrationProblem.realign``)
 POSE_ALIGN_ITER = 15
+#: a level's progress reports carry the code and alignment so far every this many iterations
+PREVIEW_EVERY = 5
 
 
 def log_scale(l):
@@ -252,8 +254,16 @@ class RegistrationProblem:
         units = np.array([move / self.radius] * 3 + [move] * 3 + [move / self.radius])
         units_t = torch.as_tensor(units, dtype=dtype, device=device)
         x0 = np.concatenate([variables.variables(resample_in_time(path, steps)).ravel(), np.zeros(self.n_extra)])
+        def result_so_far(x):
+            code = variables.path(torch.from_numpy(x[:steps * p_dim].reshape(steps, p_dim)))[-1].numpy()
+            moved = transform
+            if self.n_extra:
+                moved = delta_similarity(x[steps * p_dim:], self.center, units).inverse().compose(transform)
+            return {"code": code, "transform": moved}
+
         x, value, nit = minimize_lbfgs(objective, x0, self.monitor, max_iter=level.max_iter,
-                                       progress=progress, message=message, ftol=LEVEL_FTOL, plateau=LEVEL_PLATEAU)
+                                       progress=progress, message=message, ftol=LEVEL_FTOL, plateau=LEVEL_PLATEAU,
+                                       preview=(PREVIEW_EVERY, result_so_far) if self.monitor.wants_preview else None)
         with torch.no_grad():
             objective(torch.from_numpy(x))
         path = variables.path(torch.from_numpy(x[:steps * p_dim].reshape(steps, p_dim))).numpy()
