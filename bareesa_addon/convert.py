@@ -72,6 +72,14 @@ def evaluated_mesh(obj, depsgraph):
         evaluated.to_mesh_clear()
 
 
+def add_vertex_groups(obj, names, weights):
+    """Vertex groups ``names`` (K,) with per-vertex weights (K, N); vertices of weight 0 are left out."""
+    for name, w in zip(names, np.asarray(weights, dtype=np.float64)):
+        group = obj.vertex_groups.get(str(name)) or obj.vertex_groups.new(name=str(name))
+        for value in np.unique(w[w > 0]):
+            group.add(np.flatnonzero(w == value).tolist(), float(value), "REPLACE")
+
+
 def evaluated_mesh_with_mask(obj, depsgraph, group):
     """``evaluated_mesh`` plus per-face weights from the vertex group ``group`` (1 = ignore):
     -> verts (N, 3), tris (F, 3), face weights (F,) = 1 - mean vertex weight, or None without the group."""

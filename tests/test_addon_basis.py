@@ -191,3 +191,32 @@ def test_template_uvs_of_a_basis_become_the_uv_map_of_its_objects(scene, tiny, t
     np.testing.assert_allclose(got.reshape(-1, 3, 2), basis.extras["template_uv"], atol=1e-6)
     loops = np.array([v for p in mesh.polygons for v in p.vertices]).reshape(-1, 3)
     np.testing.assert_array_equal(loops, basis.faces)  # corner k of face f is the loop the UV was written to
+
+
+def test_named_parts_of_a_basis_become_vertex_groups_of_registered_objects(scene, tiny, tmp_path):
+    from bareesa.basis_io import load_basis, save_basis
+
+    from tests.addon_support import add_mesh, code_surface, select
+
+    basis = load_basis(tiny[1])
+    n = len(basis.template)
+    weights = np.zeros((2, n), dtype=np.float32)
+    north = basis.template[:, 2] > 0
+    weights[0, north], weights[1, ~north] = 1.0, 1.0
+    weights[:, 0] = 0.5  # a vertex shared by both
+    basis.extras.update(part_names=np.array(["top", "bottom"]), part_weights=weights)
+    save_basis(tmp_path / "parts.npz", basis)
+    bpy.context.scene.bareesa.basis = str(tmp_path / "parts.npz")
+    scan = add_mesh("scan", *code_surface(tiny[2], [0.2, 0.1, 0.0, 0.1]))
+    select(scan)
+    bpy.context.scene.bareesa.prealign = False
+    assert bpy.ops.bareesa.register_scan() == {"FINISHED"}
+    obj = bpy.data.objects["scan_registered"]
+    assert [g.name for g in obj.vertex_groups] == ["top", "bottom"]
+    for k, group in enumerate(obj.vertex_groups):
+        got = np.zeros(n)
+        for v in obj.data.vertices:
+            for g in v.groups:
+                if g.group == group.index:
+                    got[v.index] = g.weight
+        np.testing.assert_allclose(got, weights[k], atol=1e-6)

@@ -145,3 +145,22 @@ def test_cli_register_reads_named_landmarks_and_build_basis_stores_a_landmark_fi
                    "--landmarks", str(tmp_path / "scan_marks.json")])
     err = capsys.readouterr().err
     assert rc == 2 and "no landmark 'east'" in err and "north, south" in err and not (tmp_path / "r.ply").exists()
+
+
+def test_human_parts_cover_the_template_symmetrically_where_the_landmarks_say():
+    basis = load_basis("human")
+    names = [str(n) for n in basis.extras["part_names"]]
+    w = basis.extras["part_weights"]
+    assert set(names) == {"head", "body", "hand.L", "hand.R", "foot.L", "foot.R"}
+    assert w.shape == (len(names), len(basis.template)) and np.allclose(w.sum(0), 1.0, atol=1e-6)
+    t, marks = basis.template, basis.landmarks
+    member = {n: w[k] > 0.5 for k, n in enumerate(names)}
+    for part, inside, outside in (("head", "nose_tip", "shoulder_tip_l"), ("hand.L", "middle_fingertip_l", "elbow_l"),
+                                  ("hand.R", "middle_fingertip_r", "middle_fingertip_l"),
+                                  ("foot.L", "big_toe_tip_l", "knee_l"), ("foot.R", "heel_r", "heel_l")):
+        assert member[part][marks[inside]] and not member[part][marks[outside]], part
+    assert member["body"][marks["navel"]]
+    mirror = t * [-1, 1, 1]
+    left, right = t[member["hand.L"]], t[member["hand.R"]]
+    assert len(left) == len(right) and np.abs(np.sort(mirror[member["hand.L"]], 0) - np.sort(right, 0)).max() < 0.01
+    assert t[member["head"], 2].min() > t[marks["shoulder_tip_l"], 2]

@@ -219,7 +219,8 @@ def key_layout(basis):
 
 
 def template_object(context, basis, ref, name, collection=None, code=None, hint=None):
-    """A new object: the template with 'Basis' + one shape key per field, values = code.
+    """A new object: the template with 'Basis' + one shape key per field, values = code, the basis' UV map and
+    its named parts as vertex groups (if it has them).
 
     Keys follow ``key_layout``; their range is widened (or scale enlarged) to fit ``code`` and ``hint``.
     """
@@ -227,6 +228,8 @@ def template_object(context, basis, ref, name, collection=None, code=None, hint=
     obj = cv.new_mesh_object(name, basis.template, basis.faces, collection or context.collection,
                              uv=basis.extras.get("template_uv"))
     cv.add_field_keys(obj, basis.template, basis.fields, names, *key_layout(basis))
+    if "part_names" in basis.extras and "part_weights" in basis.extras:  # named body parts
+        cv.add_vertex_groups(obj, basis.extras["part_names"], basis.extras["part_weights"])
     obj[cv.PROP_BASIS] = ref
     obj[cv.PROP_BASIS_NAME] = basis.name
     for c in (code, hint):

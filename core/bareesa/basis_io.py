@@ -105,6 +105,17 @@ def load_basis(name_or_path):
                  extras={k[6:]: v for k, v in data.items() if k.startswith("extra_")})
 
 
+def add_extras(path, **arrays):
+    """Add or replace extra arrays (``Basis.extras``) of a basis file in place; the rest is unchanged."""
+    path = resolve_basis_path(path)
+    with np.load(path, allow_pickle=False) as z:
+        stored = {k: z[k] for k in z.files}
+    stored.update({f"extra_{k}": np.asarray(v) for k, v in arrays.items()})
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, **stored)
+    tmp.replace(path)
+
+
 def update_card(path, **entries):
     """Set top-level entries of a basis file's card (inside the .npz and in the .json beside it, whose
     other entries, e.g. measured accuracy, are kept); the arrays are rewritten unchanged."""

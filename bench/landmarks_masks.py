@@ -1,0 +1,182 @@
+"""What landmarks and ignore masks fix (issue: registration an artist can steer).
+
+1. ``sphere``: the deformed-sphere held-out +-60 frames (``../shared/data``), simulated scans, registered
+   without and with three landmarks (the template's two poles and a point of its equator, placed to
+   ~1 % of the length as a hand would): the +60 frames register mirrored without help.
+2. ``arm``: held-out human scans with an arm raised (Anny's held-out identities waving, middle frame;
+   needs the ``[bases]`` extra, or ``--truths FILE`` written by an earlier run), without and with eight
+   landmarks (nose tip, navel, wrists, elbows, ankles; 1 cm placement noise).
+3. ``floor``: random bodies of the human basis scanned standing on a floor plate with a wall behind
+   them (one mesh, in a random orientation and scale), registered clean, with the plate and wall in
+   the ignore mask (face weight 0), and without the mask.
+Vertex errors against the true correspondence, mm for the human, % of the length for the sphere.
+
+Usage: python -m bench.landmarks_masks [--parts sphere arm floor] [--scans N] [--truths FILE]
+"""
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+import bench.common  # noqa: F401  (puts the repo on sys.path)
+from bench.common import OUT, markdown_table, report
+from bareesa import evaluation
+from bareesa.basis_io import load_basis
+from bareesa.registration import register
+from bareesa.scan_simulator import apply_similarity, simulate_scan
+from bareesa.synthetic import random_rotation
+from bareesa.transforms import Similarity
+
+ARM_LANDMARKS = ("nose_tip", "navel", "wrist_l", "wrist_r", "elbow_l", "elbow_r", "ankle_l", "ankle_r")
+HUMAN_SCAN = dict(remesh="voxel", noise=0.001, holes=3)  # the human benches' simulated scans
+
+
+def placed(points, noise, rng):
+    """Landmark points as a hand places them: -> [(vertex, xyz)] with Gaussian noise of std ``noise``."""
+    return [(v, p + rng.normal(scale=noise, size=3)) for v, p in points]
+
+
+def errors(res, truth, unit):
+    e = evaluation.vertex_error(res.vertices, truth)
+    return e["mean"] / unit, e["p95"] / unit
+
+
+def sphere_rows():
+    from bench.sphere_data import FAMILIES, HELD_OUT, load_frames, sphere_basis
+
+    frames, faces = load_frames("landmarks_masks")
+    basis = sphere_basis(frames, faces)
+    t = basis.template
+    marks = [int(np.argmax(t[:, 2])), int(np.argmin(t[:, 2])), int(np.argmax(t[:, 0]))]
+    rng = np.random.default_rng(0)
+    rows = []
+    for fam in FAMILIES:
+        for angle in HELD_OUT:
+            truth = frames[(fam, angle)]
+            sv, sf, info = simulate_scan(truth, faces, seed=abs(angle) + len(fam), holes=0, scale=0.3,
+                                         resolution=0.03)
+            truth_scan = apply_similarity(info, truth)
+            unit = info["scale"] * basis.scale / 100  # % of the length
+            row = [f"{fam} {angle:+d}"]
+            for use in (False, True):
+                lm = placed([(v, truth_scan[v]) for v in marks], 0.01 * info["scale"] * basis.scale, rng)
+                t0 = time.perf_counter()
+                res = register(basis, sv, sf, landmarks=lm if use else None)
+                row += [*errors(res, truth_scan, unit), time.perf_counter() - t0]
+            rows.append(row)
+            print("  ", *(f"{x:.3g}" if isinstance(x, float) else x for x in row), flush=True)
+    return markdown_table(["held-out frame", "no landmarks: mean %L", "p95 %L", "s",
+                           "3 landmarks: mean %L", "p95 %L", "s"], rows)
+
+
+def held_out_frames(path, n):
+    """Middle frames of held-out identities waving: {name: (N, 3)}, cached in ``path``."""
+    if path is not None and path.exists():
+        with np.load(path) as z:
+            frames = {k: z[k] for k in z.files}
+    else:
+        from bench.human_accuracy import held_out_data
+        from bases.build.human import BAKE_STEP
+
+        _, _, seqs = held_out_data()
+        frames = {}
+        for (ident, motion), seq in sorted(seqs.items()):
+            seq = seq[::BAKE_STEP]
+            frames[f"id{ident}_{motion}_f{len(seq) // 2}"] = seq[len(seq) // 2].astype(np.float64)
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(path, **frames)
+    waving = sorted(k for k in frames if "_wave_" in k)
+    return {k: frames[k] for k in waving[:n]}
+
+
+def arm_rows(basis, n, truths):
+    rng = np.random.default_rng(1)
+    rows = []
+    for k, (name, truth) in enumerate(held_out_frames(truths, n).items()):
+        sv, sf, info = simulate_scan(truth, basis.faces, seed=100 + k, scale=0.1, **HUMAN_SCAN)
+        truth_scan = apply_similarity(info, truth)
+        unit = info["scale"] / 1000  # mm
+        row = [name, len(sf)]
+        for use in (False, True):
+            lm = placed([(basis.landmarks[m], truth_scan[basis.landmarks[m]]) for m in ARM_LANDMARKS],
+                        0.01 * info["scale"], rng)
+            t0 = time.perf_counter()
+            res = register(basis, sv, sf, landmarks=lm if use else None)
+            row += [*errors(res, truth_scan, unit), time.perf_counter() - t0]
+        rows.append(row)
+        print("  ", *(f"{x:.3g}" if isinstance(x, float) else x for x in row), flush=True)
+    return markdown_table(["held-out scan", "faces", "no landmarks: mean mm", "p95 mm", "s",
+                           f"{len(ARM_LANDMARKS)} landmarks: mean mm", "p95 mm", "s"], rows)
+
+
+def plate(corner, u, v, pitch):
+    """A flat rectangle corner + [0, 1] u + [0, 1] v triangulated at ~pitch: -> verts, faces."""
+    nu, nv = max(2, int(np.linalg.norm(u) / pitch) + 1), max(2, int(np.linalg.norm(v) / pitch) + 1)
+    a, b = np.meshgrid(np.linspace(0, 1, nu), np.linspace(0, 1, nv), indexing="ij")
+    verts = corner + a.reshape(-1, 1) * u + b.reshape(-1, 1) * v
+    q = (np.arange(nu - 1)[:, None] * nv + np.arange(nv - 1)[None, :]).ravel()
+    return verts, np.concatenate([np.stack([q, q + nv, q + nv + 1], 1), np.stack([q, q + nv + 1, q + 1], 1)])
+
+
+def floor_and_wall(truth, pitch, rng, noise):
+    """A 1.6 m floor plate just under the feet and a 2 m wall 15 cm behind the body: -> verts, faces."""
+    lo, hi = truth.min(0), truth.max(0)
+    cx = 0.5 * (lo[0] + hi[0])
+    fv, ff = plate(np.array([cx - 0.8, lo[1] - 0.6, lo[2] - 0.002]), np.array([1.6, 0, 0]), np.array([0, 1.2, 0]),
+                   pitch)
+    wv, wf = plate(np.array([cx - 0.8, hi[1] + 0.15, lo[2]]), np.array([0, 0, 2.0]), np.array([1.6, 0, 0]), pitch)
+    verts = np.concatenate([fv, wv])
+    return verts + rng.normal(scale=noise, size=verts.shape), np.concatenate([ff, wf + len(fv)])
+
+
+def floor_rows(basis, n):
+    from bareesa.workflows import random_bodies
+
+    bodies = random_bodies(basis, n, seed=23).codes
+    rng = np.random.default_rng(2)
+    rows = []
+    for k, code in enumerate(bodies):
+        truth = basis.template + np.tensordot(code, basis.fields, 1)
+        sv, sf, info = simulate_scan(truth, basis.faces, seed=200 + k, rigid=False, scale=0.0, **HUMAN_SCAN)
+        cv, cf = floor_and_wall(truth, info["pitch"], rng, 0.001 * info["size"])
+        move = Similarity(random_rotation(300 + k), float(np.exp(rng.uniform(-0.1, 0.1))), rng.normal(size=3))
+        cluttered_v = move.apply(np.concatenate([sv, cv]))
+        cluttered_f = np.concatenate([sf, cf + len(sv)])
+        mask = np.r_[np.ones(len(sf)), np.zeros(len(cf))]
+        truth_scan, unit = move.apply(truth), move.scale / 1000
+        row = [f"body {k}", len(sf), len(cf)]
+        for v, f, w in ((move.apply(sv), sf, None), (cluttered_v, cluttered_f, mask), (cluttered_v, cluttered_f, None)):
+            t0 = time.perf_counter()
+            res = register(basis, v, f, scan_face_weights=w)
+            row += [*errors(res, truth_scan, unit), time.perf_counter() - t0]
+        rows.append(row)
+        print("  ", *(f"{x:.3g}" if isinstance(x, float) else x for x in row), flush=True)
+    return markdown_table(["random body", "body faces", "floor+wall faces", "clean: mean mm", "p95 mm", "s",
+                           "masked: mean mm", "p95 mm", "s", "no mask: mean mm", "p95 mm", "s"], rows)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--parts", nargs="+", default=["sphere", "arm", "floor"], choices=["sphere", "arm", "floor"])
+    parser.add_argument("--scans", type=int, default=3, help="human scans per part (default 3)")
+    parser.add_argument("--truths", type=lambda p: __import__("pathlib").Path(p),
+                        default=OUT / "held_out_wave_frames.npz",
+                        help="cache of the held-out Anny frames (written on the first run)")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(2)
+    sections = []
+    human = load_basis("human") if {"arm", "floor"} & set(args.parts) else None
+    for part in args.parts:
+        print(f"{part}:", flush=True)
+        table = {"sphere": sphere_rows, "arm": lambda: arm_rows(human, args.scans, args.truths),
+                 "floor": lambda: floor_rows(human, args.scans)}[part]()
+        sections.append(f"### {part}\n\n{table}")
+        report("landmarks_masks", "\n\n".join(sections))
+    print("\n\n".join(sections))
+
+
+if __name__ == "__main__":
+    main()
