@@ -218,6 +218,8 @@ class Item:
     faces: np.ndarray  # (F, 3)
     color: tuple
     caption: str = ""
+    highlight: np.ndarray | None = None  # (F,) bool: faces drawn in highlight_color instead
+    highlight_color: tuple = (0.85, 0.2, 0.15, 1.0)
 
 
 @dataclass
@@ -348,8 +350,13 @@ def render_sheet(rows, png, width=1800, rotation=None):
         for c, (item, v) in enumerate(zip(row.items, bodies)):
             vmin, vmax = v.min(0), v.max(0)
             x = (c + 0.5) * cell - 0.5 * (vmin[0] + vmax[0])
-            obj = add_object(f"sheet_{r}_{c}", v, item.faces, coll, location=(x, 0.0, base - vmin[2]))
+            where = (x, 0.0, base - vmin[2])
+            marked = np.zeros(len(item.faces), bool) if item.highlight is None else np.asarray(item.highlight, bool)
+            obj = add_object(f"sheet_{r}_{c}", v, item.faces[~marked], coll, location=where)
             obj.color = item.color
+            if marked.any():
+                add_object(f"sheet_{r}_{c}_highlight", v, item.faces[marked], coll, location=where).color = \
+                    item.highlight_color
             if item.caption:
                 _text(coll, f"caption_{r}_{c}", item.caption, caption, ((c + 0.5) * cell, 0.0, base - 0.45 * caption),
                       align="CENTER", color=CAPTION_COLOR)

@@ -38,6 +38,20 @@ def placed(points, noise, rng):
     return [(v, p + rng.normal(scale=noise, size=3)) for v, p in points]
 
 
+MESHES = OUT / "landmarks_masks"
+
+
+def keep(name, verts, faces, weights=None):
+    """Save a mesh of the first case of a part for the README pictures (tools/render_landmarks_masks.py;
+    ``<part>_transform.npy`` is the 4x4 scan -> template frame map of the part's right registration)."""
+    from bareesa.mesh import save_mesh
+
+    MESHES.mkdir(parents=True, exist_ok=True)
+    save_mesh(MESHES / f"{name}.ply", verts, faces)
+    if weights is not None:
+        np.save(MESHES / f"{name}.weights.npy", weights)
+
+
 def errors(res, truth, unit):
     e = evaluation.vertex_error(res.vertices, truth)
     return e["mean"] / unit, e["p95"] / unit
@@ -65,6 +79,10 @@ def sphere_rows():
                 t0 = time.perf_counter()
                 res = register(basis, sv, sf, landmarks=lm if use else None)
                 row += [*errors(res, truth_scan, unit), time.perf_counter() - t0]
+                if (fam, angle) == (FAMILIES[0], HELD_OUT[-1]):
+                    keep("sphere_scan", sv, sf)
+                    keep(f"sphere_{'landmarks' if use else 'free'}", res.vertices, basis.faces)
+                    np.save(MESHES / "sphere_transform.npy", res.transform.matrix())  # the last: with landmarks
             rows.append(row)
             print("  ", *(f"{x:.3g}" if isinstance(x, float) else x for x in row), flush=True)
     return markdown_table(["held-out frame", "no landmarks: mean %L", "p95 %L", "s",
@@ -106,6 +124,10 @@ def arm_rows(basis, n, truths):
             t0 = time.perf_counter()
             res = register(basis, sv, sf, landmarks=lm if use else None)
             row += [*errors(res, truth_scan, unit), time.perf_counter() - t0]
+            if k == 0:
+                keep("arm_scan", sv, sf)
+                keep(f"arm_{'landmarks' if use else 'free'}", res.vertices, basis.faces)
+                np.save(MESHES / "arm_transform.npy", res.transform.matrix())
         rows.append(row)
         print("  ", *(f"{x:.3g}" if isinstance(x, float) else x for x in row), flush=True)
     return markdown_table(["held-out scan", "faces", "no landmarks: mean mm", "p95 mm", "s",
@@ -148,10 +170,18 @@ def floor_rows(basis, n):
         mask = np.r_[np.ones(len(sf)), np.zeros(len(cf))]
         truth_scan, unit = move.apply(truth), move.scale / 1000
         row = [f"body {k}", len(sf), len(cf)]
-        for v, f, w in ((move.apply(sv), sf, None), (cluttered_v, cluttered_f, mask), (cluttered_v, cluttered_f, None)):
+        cases = {"clean": (move.apply(sv), sf, None), "masked": (cluttered_v, cluttered_f, mask),
+                 "unmasked": (cluttered_v, cluttered_f, None)}
+        for case, (v, f, w) in cases.items():
             t0 = time.perf_counter()
             res = register(basis, v, f, scan_face_weights=w)
             row += [*errors(res, truth_scan, unit), time.perf_counter() - t0]
+            if k == 0:
+                keep(f"floor_{case}", res.vertices, basis.faces)
+                if case == "masked":
+                    np.save(MESHES / "floor_transform.npy", res.transform.matrix())
+        if k == 0:
+            keep("floor_scan", cluttered_v, cluttered_f, mask)
         rows.append(row)
         print("  ", *(f"{x:.3g}" if isinstance(x, float) else x for x in row), flush=True)
     return markdown_table(["random body", "body faces", "floor+wall faces", "clean: mean mm", "p95 mm", "s",
