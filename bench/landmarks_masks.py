@@ -24,6 +24,7 @@ import bench.common  # noqa: F401  (puts the repo on sys.path)
 from bench.common import OUT, markdown_table, report
 from bareesa import evaluation
 from bareesa.basis_io import load_basis
+from bareesa.errors import BareEsaError
 from bareesa.registration import register
 from bareesa.scan_simulator import apply_similarity, simulate_scan
 from bareesa.synthetic import random_rotation
@@ -52,9 +53,17 @@ def keep(name, verts, faces, weights=None):
         np.save(MESHES / f"{name}.weights.npy", weights)
 
 
-def errors(res, truth, unit):
+def solve(truth, unit, *args, **kwargs):
+    """register(*args, **kwargs) timed: -> (result or None, [mean, p95 vertex error / unit, seconds]);
+    a solver refusal is printed and counted as a failure (NaN errors), the bench goes on."""
+    t0 = time.perf_counter()
+    try:
+        res = register(*args, **kwargs)
+    except BareEsaError as err:
+        print(f"   failed: {err}", flush=True)
+        return None, [float("nan"), float("nan"), time.perf_counter() - t0]
     e = evaluation.vertex_error(res.vertices, truth)
-    return e["mean"] / unit, e["p95"] / unit
+    return res, [e["mean"] / unit, e["p95"] / unit, time.perf_counter() - t0]
 
 
 def sphere_rows():
@@ -76,10 +85,9 @@ def sphere_rows():
             row = [f"{fam} {angle:+d}"]
             for use in (False, True):
                 lm = placed([(v, truth_scan[v]) for v in marks], 0.01 * info["scale"] * basis.scale, rng)
-                t0 = time.perf_counter()
-                res = register(basis, sv, sf, landmarks=lm if use else None)
-                row += [*errors(res, truth_scan, unit), time.perf_counter() - t0]
-                if (fam, angle) == (FAMILIES[0], HELD_OUT[-1]):
+                res, numbers = solve(truth_scan, unit, basis, sv, sf, landmarks=lm if use else None)
+                row += numbers
+                if (fam, angle) == (FAMILIES[0], HELD_OUT[-1]) and res is not None:
                     keep("sphere_scan", sv, sf)
                     keep(f"sphere_{'landmarks' if use else 'free'}", res.vertices, basis.faces)
                     np.save(MESHES / "sphere_transform.npy", res.transform.matrix())  # the last: with landmarks
@@ -121,10 +129,9 @@ def arm_rows(basis, n, truths):
         for use in (False, True):
             lm = placed([(basis.landmarks[m], truth_scan[basis.landmarks[m]]) for m in ARM_LANDMARKS],
                         0.01 * info["scale"], rng)
-            t0 = time.perf_counter()
-            res = register(basis, sv, sf, landmarks=lm if use else None)
-            row += [*errors(res, truth_scan, unit), time.perf_counter() - t0]
-            if k == 0:
+            res, numbers = solve(truth_scan, unit, basis, sv, sf, landmarks=lm if use else None)
+            row += numbers
+            if k == 0 and res is not None:
                 keep("arm_scan", sv, sf)
                 keep(f"arm_{'landmarks' if use else 'free'}", res.vertices, basis.faces)
                 np.save(MESHES / "arm_transform.npy", res.transform.matrix())
@@ -173,10 +180,9 @@ def floor_rows(basis, n):
         cases = {"clean": (move.apply(sv), sf, None), "masked": (cluttered_v, cluttered_f, mask),
                  "unmasked": (cluttered_v, cluttered_f, None)}
         for case, (v, f, w) in cases.items():
-            t0 = time.perf_counter()
-            res = register(basis, v, f, scan_face_weights=w)
-            row += [*errors(res, truth_scan, unit), time.perf_counter() - t0]
-            if k == 0:
+            res, numbers = solve(truth_scan, unit, basis, v, f, scan_face_weights=w)
+            row += numbers
+            if k == 0 and res is not None:
                 keep(f"floor_{case}", res.vertices, basis.faces)
                 if case == "masked":
                     np.save(MESHES / "floor_transform.npy", res.transform.matrix())

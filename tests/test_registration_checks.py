@@ -86,3 +86,22 @@ def test_update_card_stores_entries_in_the_file_and_beside_it(basis, tmp_path):
     assert np.array_equal(loaded.fields, basis.fields) and np.array_equal(loaded.faces, basis.faces)
     side = json.loads(path.with_suffix(".json").read_text())
     assert side["fit_check"] == {"poor_fit_above": 0.05} and side["accuracy"] == {"kept": 1}
+
+
+def test_prealignment_scale_stays_bounded_and_finite_on_a_scan_with_far_clutter():
+    """A speck of clutter far from the body inflates the scan's moments; the refinement may change the
+    moment-matched scale by at most PREALIGN_LOG_SCALE_LIMIT (an unbounded log-scale overflowed)."""
+    import math
+
+    from bareesa import synthetic
+    from bareesa.registration.prealign import PREALIGN_LOG_SCALE_LIMIT, prealign_candidates, surface_moments
+
+    verts, faces = synthetic.icosphere(2)
+    speck_v, speck_f = synthetic.icosphere(0)
+    scan_v = np.concatenate([verts, 0.05 * speck_v + [40.0, 0.0, 0.0]])
+    scan_f = np.concatenate([faces, speck_f + len(verts)])
+    rho = lambda v, f: math.sqrt(np.trace(surface_moments(v, f)[2]))  # noqa: E731
+    matched = rho(verts, faces) / rho(scan_v, scan_f)
+    for score, sim in prealign_candidates(verts, faces, scan_v, scan_f):
+        assert np.isfinite(score) and np.isfinite(sim.matrix()).all()
+        assert abs(math.log(sim.scale / matched)) <= PREALIGN_LOG_SCALE_LIMIT + 1e-9

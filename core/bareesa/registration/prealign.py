@@ -32,6 +32,16 @@ PREALIGN_KEEP = 6           # distinct ones refined at the finer sigma and tried
 PREALIGN_DISTINCT = 20.0    # degrees between two distinct candidates
 PREALIGN_RATIO = 4.0        # candidates whose varifold is within this factor of the best's are tried
 PREALIGN_MAX_ITER = 40
+#: The refinement changes the moment-matched scale by at most this factor (log, bounded smoothly): an
+#: unbounded log-scale let a line search try e^(hundreds) and the objective overflow on plain body scans
+PREALIGN_LOG_SCALE_LIMIT = math.log(4.0)
+
+
+def _bounded_log_scale(l):
+    """The refinement's log-scale (tensor or float) mapped smoothly into +-PREALIGN_LOG_SCALE_LIMIT."""
+    if isinstance(l, torch.Tensor):
+        return PREALIGN_LOG_SCALE_LIMIT * torch.tanh(l / PREALIGN_LOG_SCALE_LIMIT)
+    return PREALIGN_LOG_SCALE_LIMIT * math.tanh(l / PREALIGN_LOG_SCALE_LIMIT)
 
 
 def surface_moments(verts, faces, face_weights=None):
@@ -128,7 +138,8 @@ def prealign_candidates(template_verts, template_faces, scan_verts, scan_faces, 
     monitor.report(lo + span, "pre-alignment: candidates scored", min(scores))
 
     def refine(obj, r, x0, k):
-        x, value, _ = minimize_lbfgs(lambda p: obj(p, torch.from_numpy(r)), x0, monitor,
+        bounded = lambda p: torch.cat([p[:6], _bounded_log_scale(p[6:])])  # noqa: E731
+        x, value, _ = minimize_lbfgs(lambda p: obj(bounded(p), torch.from_numpy(r)), x0, monitor,
                                      max_iter=PREALIGN_MAX_ITER, progress=(lo + k * span, lo + (k + 1) * span),
                                      message="pre-alignment", gtol=1e-9, ftol=1e-10)
         return axis_angle_rotation(x[:3]) @ r, x, value
@@ -147,7 +158,7 @@ def prealign_candidates(template_verts, template_faces, scan_verts, scan_faces, 
     for k, (_, r0, x0) in enumerate(distinct[:keep]):
         x0 = np.concatenate([np.zeros(3), x0[3:]])
         r, x, value = refine(fine, r0, x0, PREALIGN_REFINE + 1 + k)
-        scale = rho_t * math.exp(x[6]) / rho_s
+        scale = rho_t * math.exp(_bounded_log_scale(float(x[6]))) / rho_s
         out.append((value / fine.self_t, Similarity(r, scale, ct + rho_t * x[3:6] - scale * r @ cs)))
     out.sort(key=lambda c: c[0])
     monitor.report(hi, "pre-alignment done", out[0][0])
