@@ -98,6 +98,7 @@ class BAREESA_PT_register(_Section, bpy.types.Panel):
         n = sum(o.type == "MESH" for o in context.selected_objects)
         layout.operator("bareesa.register_scan", text=f"Register {n} Selected" if n else "Register Selected",
                         icon="MOD_SHRINKWRAP")
+        layout.operator("bareesa.transfer_texture", icon="TEXTURE")
 
 
 class BAREESA_PT_paths(_Section, bpy.types.Panel):
