@@ -49,7 +49,7 @@ def render(meshes, out, width):
 
         template, faces = load_mesh(shared_data("render_landmarks_masks") / "deformed_sphere" / "template.ply")
         cap = template[faces].mean(1)[:, 2] > 0.6 * template[:, 2].max()  # the template's +Z end
-        sheets["landmarks_sphere"] = demo.Row("A +60 degree bend registers mirrored; three landmarks fix it", [
+        sheets["landmarks_sphere"] = demo.Row("A +60 bend: mirrored without landmarks", [
             demo.Item(*mesh("sphere_scan"), GREY, "scan"),
             demo.Item(*mesh("sphere_free"), BLUE, "no landmarks", highlight=cap),
             demo.Item(*mesh("sphere_landmarks"), GREEN, "3 landmarks", highlight=cap)])
