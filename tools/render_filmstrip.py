@@ -10,13 +10,13 @@ seven evaluated frames of each are rendered with Workbench into ``filmstrip_inte
 """
 
 import argparse
-import os
-import subprocess
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from tools.render_child import finish_child, run_child  # noqa: E402
 
 
 def render(out, basis_name, frames, width):
@@ -85,24 +85,9 @@ def main(argv=None):
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
-        code = 0
-        try:
-            render(args.out.resolve(), args.basis, args.frames, args.width)
-        except Exception:  # noqa: BLE001 - reported, then the fast exit
-            import traceback
-
-            traceback.print_exc()
-            code = 1
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(code)
-    cmd = [sys.executable, __file__, "--child", "--out", str(args.out), "--basis", args.basis,
-           "--frames", str(args.frames), "--width", str(args.width)]
-    try:
-        return subprocess.run(cmd, timeout=args.timeout).returncode
-    except subprocess.TimeoutExpired:
-        print(f"render_filmstrip: the render took more than {args.timeout:g} s and was stopped", file=sys.stderr)
-        return 1
+        finish_child(render, args.out.resolve(), args.basis, args.frames, args.width)
+    argv = ["--out", args.out, "--basis", args.basis, "--frames", args.frames, "--width", args.width]
+    return run_child(__file__, argv, args.timeout, "render_filmstrip")
 
 
 if __name__ == "__main__":

@@ -11,13 +11,13 @@ timeout (the bpy module can hang at exit after a render, see bareesa_addon/demo.
 """
 
 import argparse
-import os
-import subprocess
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from tools.render_child import finish_child, run_child  # noqa: E402
 sys.path.insert(0, str(ROOT / "core"))
 
 GREY = (0.72, 0.72, 0.74, 1.0)
@@ -69,8 +69,8 @@ def render(meshes, out, width):
             demo.Item(*mesh("floor_unmasked"), ORANGE, "without the mask"),
             demo.Item(*mesh("floor_clean"), BLUE, "clean scan")])
     for name, row in sheets.items():
-        body = row.items[1].verts
-        png = demo.render_sheet([row], out / f"{name}.png", width=width, rotation=demo.view_rotation(body, -25.0))
+        rotation = demo.view_rotation(row.items[1].verts)
+        png = demo.render_sheet([row], out / f"{name}.png", width=width, rotation=rotation)
         print(f"wrote {png}", flush=True)
 
 
@@ -83,26 +83,11 @@ def main(argv=None):
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
-        code = 0
-        try:
-            render(args.meshes.resolve(), args.out.resolve(), args.width)
-        except Exception:  # noqa: BLE001 - reported, then the fast exit
-            import traceback
-
-            traceback.print_exc()
-            code = 1
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(code)
+        finish_child(render, args.meshes.resolve(), args.out.resolve(), args.width)
     if not args.meshes.is_dir():
         sys.exit(f"render_landmarks_masks: no meshes in {args.meshes}: run python -m bench.landmarks_masks first")
-    cmd = [sys.executable, __file__, "--child", "--meshes", str(args.meshes), "--out", str(args.out),
-           "--width", str(args.width)]
-    try:
-        return subprocess.run(cmd, timeout=args.timeout).returncode
-    except subprocess.TimeoutExpired:
-        print(f"render_landmarks_masks: the render took more than {args.timeout:g} s and was stopped", file=sys.stderr)
-        return 1
+    return run_child(__file__, ["--meshes", args.meshes, "--out", args.out, "--width", args.width],
+                     args.timeout, "render_landmarks_masks")
 
 
 if __name__ == "__main__":
