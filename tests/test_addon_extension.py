@@ -78,3 +78,66 @@ def tiny_basis_file(tmp_path):
     path = tmp_path / "tiny.npz"
     save_basis(path, tiny_basis()[0])
     return path
+
+
+def _build_module():
+    sys.path.insert(0, str(ROOT / "tools"))
+    try:
+        import build_extension
+    finally:
+        sys.path.pop(0)
+    return build_extension
+
+
+def fake_wheel(folder, requirement, requires=()):
+    """A minimal pure-Python wheel 'name==version' (METADATA, WHEEL, RECORD), for tests without network."""
+    name, version = requirement.split("==")
+    stem = f"{name.replace('-', '_')}-{version}"
+    path = folder / f"{stem}-py3-none-any.whl"
+    meta = f"Metadata-Version: 2.1\nName: {name}\nVersion: {version}\n" + "".join(
+        f"Requires-Dist: {r}\n" for r in requires)
+    with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr(f"{name.replace('-', '_')}/__init__.py", "")
+        zf.writestr(f"{stem}.dist-info/METADATA", meta)
+        zf.writestr(f"{stem}.dist-info/WHEEL",
+                    "Wheel-Version: 1.0\nGenerator: test\nRoot-Is-Purelib: true\nTag: py3-none-any\n")
+        zf.writestr(f"{stem}.dist-info/RECORD", "")
+    return path
+
+
+def test_a_platform_zip_carries_exactly_its_wheels_in_its_manifest_and_no_numpy(tmp_path):
+    import tomllib
+
+    be = _build_module()
+    wheels = tmp_path / "wheels"
+    wheels.mkdir()
+    for req in be.platform_requirements("linux-x64"):
+        fake_wheel(wheels, req, requires=["numpy>=1.23"] if req.startswith("scipy") else ())
+    fake_wheel(wheels, "numpy==1.26.4")  # in the folder, never bundled
+    path = be.build(tmp_path / "dist", bases=False, platform="linux-x64", wheels_dir=wheels)
+    assert path.name.endswith("-linux-x64.zip")
+    with zipfile.ZipFile(path) as zf:
+        names = set(zf.namelist())
+        manifest = tomllib.loads(zf.read("blender_manifest.toml").decode())
+    bundled = sorted(n for n in names if n.startswith("wheels/"))
+    assert manifest["platforms"] == ["linux-x64"]
+    assert sorted(w.removeprefix("./") for w in manifest["wheels"]) == bundled
+    assert len(bundled) == len(be.WHEEL_REQUIREMENTS) and not any("numpy" in n for n in bundled)
+    assert any(n.startswith("wheels/torch-2.13.0+cpu") for n in bundled)
+    assert "website" not in manifest
+    assert tomllib.loads((ROOT / "blender_manifest.toml").read_text()).get("wheels") is None  # repo's untouched
+
+
+def test_a_platform_zip_refuses_a_missing_wheel_and_one_that_needs_another_numpy(tmp_path):
+    be = _build_module()
+    wheels = tmp_path / "wheels"
+    wheels.mkdir()
+    reqs = be.platform_requirements("linux-x64")
+    for req in reqs[1:]:
+        fake_wheel(wheels, req)
+    with pytest.raises(SystemExit, match="no linux-x64 wheel for torch"):
+        be.build(tmp_path / "dist", bases=False, platform="linux-x64", wheels_dir=wheels)
+    fake_wheel(wheels, reqs[0], requires=["numpy>=2.0"])
+    with pytest.raises(SystemExit, match="Blender ships numpy 1.26"):
+        be.build(tmp_path / "dist", bases=False, platform="linux-x64", wheels_dir=wheels)
+    assert not list((tmp_path / "dist").glob("*.zip"))
