@@ -138,6 +138,6 @@ def test_a_platform_zip_refuses_a_missing_wheel_and_one_that_needs_another_numpy
     with pytest.raises(SystemExit, match="no linux-x64 wheel for torch"):
         be.build(tmp_path / "dist", bases=False, platform="linux-x64", wheels_dir=wheels)
     fake_wheel(wheels, reqs[0], requires=["numpy>=2.0"])
-    with pytest.raises(SystemExit, match="Blender ships numpy 1.26"):
+    with pytest.raises(SystemExit, match="numpy"):  # pip cannot resolve it against numpy 1.26
         be.build(tmp_path / "dist", bases=False, platform="linux-x64", wheels_dir=wheels)
     assert not list((tmp_path / "dist").glob("*.zip"))

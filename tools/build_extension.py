@@ -33,9 +33,9 @@ DEFAULT_CACHE = ROOT / "dist" / "wheel-cache"
 PYTHON_VERSION = "3.11"
 #: The numpy Blender 4.5 ships (bpy 4.5 pins it): never bundled, every bundled wheel must accept it.
 BLENDER_NUMPY = "1.26.4"
-#: The one list of bundled wheels: the solver's runtime dependencies (pyproject.toml) pinned to releases
-#: that import beside numpy 1.26 on Python 3.11, plus scikit-learn's own dependencies (bundled wheels must
-#: include their dependencies). Not numpy (Blender's), pykeops (optional, compiles at run time), bpy.
+#: The solver's runtime dependencies (pyproject.toml) pinned to releases that import beside numpy 1.26 on
+#: Python 3.11; pip adds what they need in turn (torch: typing_extensions, sympy, networkx, ...), since
+#: bundled wheels must be complete. Not numpy (Blender's), pykeops (optional, compiles at run time), bpy.
 WHEEL_REQUIREMENTS = ("torch==2.13.0", "scipy==1.17.1", "trimesh==5.2.0", "scikit-learn==1.9.1",
                       "joblib==1.6.0", "threadpoolctl==3.8.0", "tqdm==4.70.1")
 #: Runtime dependencies of pyproject.toml that are deliberately not bundled.
@@ -93,6 +93,14 @@ def check_pins_match_pyproject(pyproject=ROOT / "pyproject.toml"):
             raise SystemExit(f"bundled {name}=={version} is outside {pyproject.name}'s {declared[name]}")
 
 
+def platform_tags(platform):
+    """pip's --platform arguments for a Blender platform (Linux: manylinux_2_28 and the older glibc tags
+    it runs, which e.g. numpy 1.26's wheels carry): -> list of strings."""
+    tag = PLATFORMS[platform][0]
+    tags = [tag] + (["manylinux_2_17_x86_64", "manylinux2014_x86_64"] if tag.startswith("manylinux") else [])
+    return [arg for t in tags for arg in ("--platform", t)]
+
+
 def _pip_error(output):
     """The line of pip's output that says what went wrong."""
     errors = [line.removeprefix("ERROR: ") for line in output.splitlines() if line.startswith("ERROR:")]
@@ -100,13 +108,14 @@ def _pip_error(output):
 
 
 def _pip_download(requirements, platform, dest, find_links=None, extra_index_urls=()):
-    """``pip download`` the wheels of ``requirements`` for ``platform`` into ``dest``; SystemExit on failure.
+    """``pip download`` the wheels of ``requirements`` and of everything they need for ``platform`` into
+    ``dest`` (pip resolves the dependencies, with numpy held at Blender's); SystemExit on failure.
 
     With ``find_links`` pip looks only there (no index, no pip configuration): the offline selection.
     """
     cmd = [sys.executable, "-m", "pip", "download", "--disable-pip-version-check", "--no-input",
-           "--only-binary=:all:", "--platform", PLATFORMS[platform][0], "--python-version", PYTHON_VERSION,
-           "--no-deps", "-d", str(dest)]
+           "--only-binary=:all:", *platform_tags(platform), "--python-version", PYTHON_VERSION,
+           "-d", str(dest)]
     env = dict(os.environ)
     if find_links is not None:
         cmd[3:3] = ["--isolated"]
@@ -114,7 +123,8 @@ def _pip_download(requirements, platform, dest, find_links=None, extra_index_url
         env["PIP_CONFIG_FILE"] = os.devnull
     for url in extra_index_urls:
         cmd += ["--extra-index-url", url]
-    proc = subprocess.run(cmd + list(requirements), capture_output=True, text=True, env=env)
+    pinned = list(requirements) + [f"numpy=={BLENDER_NUMPY}"]  # resolve against Blender's numpy
+    proc = subprocess.run(cmd + pinned, capture_output=True, text=True, env=env)
     if proc.returncode != 0:
         error = _pip_error(proc.stdout + proc.stderr)
         where = f"in {find_links}" if find_links is not None else "on the package index"
@@ -159,10 +169,8 @@ def platform_wheels(platform, dest, wheels_dir=None, cache_dir=DEFAULT_CACHE, ex
     elif not Path(wheels_dir).is_dir():
         raise SystemExit(f"--wheels {wheels_dir}: not a folder")
     _pip_download(requirements, platform, dest, find_links=Path(wheels_dir).resolve())
-    wheels = sorted(Path(dest).glob("*.whl"))
+    wheels = sorted(w for w in Path(dest).glob("*.whl") if not w.name.lower().startswith("numpy-"))  # Blender's
     for wheel in wheels:
-        if wheel.name.lower().startswith("numpy-"):
-            raise SystemExit(f"{wheel.name}: numpy must not be bundled (Blender ships it)")
         if error := _numpy_requirement_error(wheel):
             raise SystemExit(error)
     return wheels
