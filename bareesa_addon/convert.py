@@ -63,13 +63,8 @@ def evaluated_mesh(obj, depsgraph):
 
     Quads and n-gons are triangulated (Blender's loop triangles).
     """
-    require_mesh(obj)
-    evaluated = obj.evaluated_get(depsgraph)
-    mesh = evaluated.to_mesh()
-    try:
-        return _read_mesh(mesh)
-    finally:
-        evaluated.to_mesh_clear()
+    verts, tris, _ = evaluated_mesh_with_mask(obj, depsgraph, None)
+    return verts, tris
 
 
 def add_vertex_groups(obj, names, weights):

@@ -56,6 +56,19 @@ def resolve_basis_path(name_or_path):
                      f"give a path to an .npz basis file instead, or add its folder to ${SEARCH_PATH_ENV}")
 
 
+def _write_npz(path, arrays):
+    """Write the arrays {name: array} to the .npz ``path`` atomically (a temporary file, then a rename)."""
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    tmp.replace(path)
+
+
+def _read_npz(path):
+    """Every array of the .npz ``path``: -> {name: array}."""
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
 def save_basis(path, basis, fields_dtype=None):
     """Write ``path`` (.npz arrays) and ``path.json`` (its card) atomically.
 
@@ -71,9 +84,7 @@ def save_basis(path, basis, fields_dtype=None):
     arrays = {"template": basis.template, "faces": basis.faces, "fields": fields,
               "card": np.frombuffer(json.dumps(card).encode(), dtype=np.uint8)}
     arrays.update({f"extra_{k}": np.asarray(v) for k, v in basis.extras.items()})
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    tmp.replace(path)
+    _write_npz(path, arrays)
     json_tmp = path.with_suffix(".json.tmp")
     json_tmp.write_text(json.dumps(card, indent=2) + "\n")
     json_tmp.replace(path.with_suffix(".json"))
@@ -83,8 +94,7 @@ def load_basis(name_or_path):
     """Load and validate a basis from a bundled name or an .npz path."""
     path = resolve_basis_path(name_or_path)
     try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
+        data = _read_npz(path)
     except Exception as err:  # zipfile / pickle / value errors
         raise InputError(f"cannot read basis file {path}: {err}") from None
     missing = {"template", "faces", "fields", "card"} - set(data)
@@ -108,25 +118,19 @@ def load_basis(name_or_path):
 def add_extras(path, **arrays):
     """Add or replace extra arrays (``Basis.extras``) of a basis file in place; the rest is unchanged."""
     path = resolve_basis_path(path)
-    with np.load(path, allow_pickle=False) as z:
-        stored = {k: z[k] for k in z.files}
+    stored = _read_npz(path)
     stored.update({f"extra_{k}": np.asarray(v) for k, v in arrays.items()})
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez_compressed(tmp, **stored)
-    tmp.replace(path)
+    _write_npz(path, stored)
 
 
 def update_card(path, **entries):
     """Set top-level entries of a basis file's card (inside the .npz and in the .json beside it, whose
     other entries, e.g. measured accuracy, are kept); the arrays are rewritten unchanged."""
     path = resolve_basis_path(path)
-    with np.load(path, allow_pickle=False) as z:
-        arrays = {k: z[k] for k in z.files}
+    arrays = _read_npz(path)
     card = json.loads(arrays["card"].tobytes().decode()) | entries
     arrays["card"] = np.frombuffer(json.dumps(card).encode(), dtype=np.uint8)
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    tmp.replace(path)
+    _write_npz(path, arrays)
     side = path.with_suffix(".json")
     side_card = (json.loads(side.read_text()) if side.exists() else card) | entries
     json_tmp = path.with_suffix(".json.tmp")

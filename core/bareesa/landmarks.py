@@ -101,6 +101,11 @@ def template_vertex(basis, key, where):
     return index
 
 
+def _landmark(basis, key, xyz, weight, where):
+    """One scan landmark checked: -> (template vertex, (x, y, z), weight)."""
+    return template_vertex(basis, key, where), _point(xyz, where), _weight(weight, where)
+
+
 def scan_landmarks(basis, points):
     """Named scan points {name or vertex: (x, y, z) or ((x, y, z), weight)} -> [(vertex, (x, y, z), weight)]."""
     out = []
@@ -110,7 +115,7 @@ def scan_landmarks(basis, points):
             xyz, w = value
         else:
             xyz, w = value, 1.0
-        out.append((template_vertex(basis, key, where), _point(xyz, where), _weight(w, where)))
+        out.append(_landmark(basis, key, xyz, w, where))
     return out
 
 
@@ -147,14 +152,6 @@ def read_scan_landmarks(path, basis):
                 raise InputError(f"{path}: landmark {k + 1} ('{', '.join(row)}') must be 'name or vertex, x, y, "
                                  "z[, weight]'")
             rows.append((row[0], row[1:4], row[4] if len(row) == 5 else 1.0))
-    out = []
-    for k, (key, xyz, w) in enumerate(rows):
-        where = f"{path}: landmark {k + 1} ('{key}')"
-        out.append((template_vertex(basis, key, where), _point(xyz, where), _weight(w, where)))
-    return out
+    return [_landmark(basis, key, xyz, w, f"{path}: landmark {k + 1} ('{key}')")
+            for k, (key, xyz, w) in enumerate(rows)]
 
-
-def landmark_points(basis, verts=None):
-    """Positions of the basis' named landmarks on the template or on verts (N, 3): -> {name: (3,)}."""
-    verts = basis.template if verts is None else np.asarray(verts)
-    return {name: verts[i].copy() for name, i in basis.landmarks.items()}

@@ -196,9 +196,16 @@ class RegistrationProblem:
                                       self.scan_weights, cell=SCREEN_CELL * sigma, backend=self.backend)
             fit = loss(final, self.faces)
             if self.marks is not None:
-                lm_pts = torch.as_tensor(transform.apply(self.marks[1]), dtype=self.dtype, device=self.device)
-                fit = fit + (self.lm_w * ((final[self.lm_idx] - lm_pts) ** 2).sum(1)).sum()
+                fit = fit + self.landmark_term(final, self.landmark_points(transform))
             return level.weight * float(fit) + energy
+
+    def landmark_points(self, transform):
+        """The scan's landmark points mapped into the template frame by ``transform``: -> (L, 3) tensor."""
+        return torch.as_tensor(transform.apply(self.marks[1]), dtype=self.dtype, device=self.device)
+
+    def landmark_term(self, final, points):
+        """sum_i w_i |F_i - p_i|^2 of the landmark vertices of ``final`` (N, 3) against ``points`` (L, 3)."""
+        return (self.lm_w * ((final[self.lm_idx] - points) ** 2).sum(1)).sum()
 
     def solve_level(self, level, path, transform, progress, message):
         """Minimise one level from path (T0+1, P) and the alignment -> (path (T+1, P), alignment, report)."""
@@ -223,7 +230,7 @@ class RegistrationProblem:
                                 target_weights=self.scan_weights, cutoff=default_cutoff(sigma, FINE_TOL),
                                 target_cell=None if SCAN_CELL is None else SCAN_CELL * sigma)
         if self.marks is not None:
-            lm_pts = torch.as_tensor(transform.apply(self.marks[1]), dtype=dtype, device=device)
+            lm_pts = self.landmark_points(transform)
         terms = {}
 
         def objective(x):
@@ -240,7 +247,7 @@ class RegistrationProblem:
             gamma = loss(final, self.faces)
             fit = gamma
             if self.marks is not None:
-                fit = fit + (self.lm_w * ((final[self.lm_idx] - lm_pts) ** 2).sum(1)).sum()
+                fit = fit + self.landmark_term(final, lm_pts)
             terms.update(energy=energy, gamma=gamma)
             return level.weight * fit + energy
 
@@ -254,22 +261,24 @@ class RegistrationProblem:
         units = np.array([move / self.radius] * 3 + [move] * 3 + [move / self.radius])
         units_t = torch.as_tensor(units, dtype=dtype, device=device)
         x0 = np.concatenate([variables.variables(resample_in_time(path, steps)).ravel(), np.zeros(self.n_extra)])
+
+        def unpack(x):
+            """The path (steps + 1, P) and the alignment the variables x stand for."""
+            path = variables.path(torch.from_numpy(x[:steps * p_dim].reshape(steps, p_dim))).numpy()
+            if not self.n_extra:
+                return path, transform
+            return path, delta_similarity(x[steps * p_dim:], self.center, units).inverse().compose(transform)
+
         def result_so_far(x):
-            code = variables.path(torch.from_numpy(x[:steps * p_dim].reshape(steps, p_dim)))[-1].numpy()
-            moved = transform
-            if self.n_extra:
-                moved = delta_similarity(x[steps * p_dim:], self.center, units).inverse().compose(transform)
-            return {"code": code, "transform": moved}
+            path, moved = unpack(x)
+            return {"code": path[-1], "transform": moved}
 
         x, value, nit = minimize_lbfgs(objective, x0, self.monitor, max_iter=level.max_iter,
                                        progress=progress, message=message, ftol=LEVEL_FTOL, plateau=LEVEL_PLATEAU,
                                        preview=(PREVIEW_EVERY, result_so_far) if self.monitor.wants_preview else None)
         with torch.no_grad():
             objective(torch.from_numpy(x))
-        path = variables.path(torch.from_numpy(x[:steps * p_dim].reshape(steps, p_dim))).numpy()
-        if self.n_extra:
-            delta = delta_similarity(x[steps * p_dim:], self.center, units)
-            transform = delta.inverse().compose(transform)
+        path, transform = unpack(x)
         return path, transform, {"sigma": float(sigma), "weight": float(level.weight), "steps": int(steps),
                                  "iterations": int(nit), "energy": float(terms["energy"]),
                                  "varifold": float(terms["gamma"]), "objective": float(value),
