@@ -65,23 +65,32 @@ def card_summary(card):
     return text + (f", {n_marks} landmarks" if n_marks else "")
 
 
+_CATALOGUE_CACHE = {}
+
+
 def basis_catalogue(user_dir=None):
     """The bases a user can pick by name, bundled ones first then those saved in ``user_dir``:
-    -> [(name, one-line summary)] (summaries from the .json cards beside the files; no basis is loaded)."""
+    -> [(name, one-line summary)] (summaries from the .json cards beside the files; no basis is loaded).
+
+    The panel asks on every redraw: the list is read again only when a folder changed (its mtime)."""
     import json
 
-    found = {}
     folders = module("basis_io").basis_search_path() + ([Path(user_dir)] if user_dir else [])
-    for folder in folders:
-        for npz in sorted(Path(folder).glob("*.npz")):
-            if npz.stem in found:
-                continue
-            try:
-                summary = card_summary(json.loads(npz.with_suffix(".json").read_text()))
-            except (OSError, ValueError):
-                summary = str(npz)
-            found[npz.stem] = summary
-    return list(found.items())
+    key = tuple((str(f), f.stat().st_mtime_ns if f.is_dir() else None) for f in folders)
+    if key not in _CATALOGUE_CACHE:
+        found = {}
+        for folder in folders:
+            for npz in sorted(Path(folder).glob("*.npz")):
+                if npz.stem in found:
+                    continue
+                try:
+                    summary = card_summary(json.loads(npz.with_suffix(".json").read_text()))
+                except (OSError, ValueError):
+                    summary = str(npz)
+                found[npz.stem] = summary
+        _CATALOGUE_CACHE.clear()
+        _CATALOGUE_CACHE[key] = list(found.items())
+    return _CATALOGUE_CACHE[key]
 
 
 def load_basis(reference, user_dir=None):

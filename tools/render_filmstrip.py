@@ -9,14 +9,13 @@ seven evaluated frames of each are rendered with Workbench into ``filmstrip_inte
 ``os._exit`` (the bpy module can hang at exit after a render, see bareesa_addon/demo.py).
 """
 
-import argparse
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tools.render_child import finish_child, run_child  # noqa: E402
+from tools.render_child import finish_child, render_parser, run_child  # noqa: E402
 
 
 def render(out, basis_name, frames, width):
@@ -76,13 +75,9 @@ def render(out, basis_name, frames, width):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "images")
+    parser = render_parser(__doc__, width=1400, timeout=900.0)
     parser.add_argument("--basis", default="human")
     parser.add_argument("--frames", type=int, default=24)
-    parser.add_argument("--width", type=int, default=1400)
-    parser.add_argument("--timeout", type=float, default=900.0, help="seconds the render may take")
-    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
         finish_child(render, args.out.resolve(), args.basis, args.frames, args.width)

@@ -10,14 +10,13 @@ with and without the mask, and the clean scan's registration. Workbench, in a ch
 timeout (the bpy module can hang at exit after a render, see bareesa_addon/demo.py).
 """
 
-import argparse
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tools.render_child import finish_child, run_child  # noqa: E402
+from tools.render_child import finish_child, render_parser, run_child  # noqa: E402
 sys.path.insert(0, str(ROOT / "core"))
 
 GREY = (0.72, 0.72, 0.74, 1.0)
@@ -75,12 +74,8 @@ def render(meshes, out, width):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = render_parser(__doc__, width=1400, timeout=600.0)
     parser.add_argument("--meshes", type=Path, default=ROOT / "bench" / "out" / "landmarks_masks")
-    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "images")
-    parser.add_argument("--width", type=int, default=1400)
-    parser.add_argument("--timeout", type=float, default=600.0, help="seconds the render may take")
-    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
         finish_child(render, args.meshes.resolve(), args.out.resolve(), args.width)

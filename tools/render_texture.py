@@ -9,7 +9,6 @@ and bakes the colours onto the registered object's UVs (Transfer Texture); Workb
 ``texture_transfer.png``.
 """
 
-import argparse
 import math
 import sys
 import tempfile
@@ -18,7 +17,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tools.render_child import finish_child, run_child  # noqa: E402
+from tools.render_child import finish_child, render_parser, run_child  # noqa: E402
 
 
 def pattern(points):
@@ -98,11 +97,7 @@ def render(out, width):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "images")
-    parser.add_argument("--width", type=int, default=1200)
-    parser.add_argument("--timeout", type=float, default=900.0, help="seconds it may take")
-    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    parser = render_parser(__doc__, width=1200, timeout=900.0)
     args = parser.parse_args(argv)
     if args.child:
         finish_child(render, args.out.resolve(), args.width)
