@@ -97,8 +97,9 @@ def sphere_rows():
                            "3 landmarks: mean %L", "p95 %L", "s"], rows)
 
 
-def held_out_frames(path, n):
-    """Middle frames of held-out identities waving: {name: (N, 3)}, cached in ``path``."""
+def held_out_frames(path, n, motion="wave"):
+    """Middle frames of held-out identities in a held-out motion: {name: (N, 3)} (the first n by
+    name), all motions' cached in ``path``."""
     if path is not None and path.exists():
         with np.load(path) as z:
             frames = {k: z[k] for k in z.files}
@@ -114,8 +115,8 @@ def held_out_frames(path, n):
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
             np.savez_compressed(path, **frames)
-    waving = sorted(k for k in frames if "_wave_" in k)
-    return {k: frames[k] for k in waving[:n]}
+    chosen = sorted(k for k in frames if f"_{motion}_" in k)
+    return {k: frames[k] for k in chosen[:n]}
 
 
 def arm_rows(basis, n, truths):

@@ -4,7 +4,7 @@
 remeshed scan of F(alpha*), the paper's three-level body schedule. Targets: registration
 <= 20 s on the 2-core CPU (<= 2 s on one H100), interpolation with known codes (T = 10)
 <= 2 s on CPU. Prints per-level timings and a profile of where the time goes.
-Run: python -m bench.registration_speed [--device cuda] [--dtype float32]
+Run: python -m bench.registration_speed [--device cuda] [--dtype float32] [--kernel auto]
 """
 
 import argparse
@@ -43,6 +43,7 @@ def main():
     parser.add_argument("--dtype", default="float64", choices=("float32", "float64"))
     parser.add_argument("--profile", action="store_true")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--kernel", default="auto", help="register()'s kernel: auto (default), binet, linear, ...")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     dtype = getattr(torch, args.dtype)
@@ -59,14 +60,15 @@ def main():
     t0, c0 = time.perf_counter(), time.process_time()
     if prof:
         prof.enable()
-    res = register(basis, sv, sf, device=args.device, dtype=dtype, callback=stage_printer(t0))
+    res = register(basis, sv, sf, kernel=args.kernel, device=args.device, dtype=dtype, callback=stage_printer(t0))
     if prof:
         prof.disable()
     reg_secs, reg_cpu = time.perf_counter() - t0, time.process_time() - c0
     err = evaluation.vertex_error(res.vertices, basis.template + np.tensordot(truth, basis.fields, 1))
-    rows = [[f"level {i + 1}", lv["sigma"], lv["weight"], lv["steps"], lv["iterations"], lv["binned"],
+    rows = [[f"level {i + 1}", lv["sigma"], lv["weight"], lv["steps"], lv["kernel"], lv["iterations"], lv["binned"],
              lv["seconds"]] for i, lv in enumerate(res.levels)]
-    table1 = markdown_table(["stage", "sigma (m)", "weight", "steps", "iterations", "binned", "seconds"], rows)
+    table1 = markdown_table(["stage", "sigma (m)", "weight", "steps", "kernel", "iterations", "binned", "seconds"],
+                            rows)
     t, f, h = basis.tensors(dtype=dtype, device=args.device)
     a0, a1 = rng.normal(size=(2, basis.n_fields)) * 0.5
     t1, c1 = time.perf_counter(), time.process_time()

@@ -331,6 +331,13 @@ def test_register_command_writes_registered_mesh_and_json(capsys, tmp_path):
     rc, _, err = run(capsys, "register", tmp_path / "scan.ply", "--basis", tmp_path / "s.npz",
                      "-o", tmp_path / "r2.ply", "--landmarks", tmp_path / "bad.csv")
     assert rc == 2 and "landmark 1" in err and not (tmp_path / "r2.ply").exists()
+    assert [lv["kernel"] for lv in res["levels"]] == ["binet", "binet"] and res["normal_spread"] < 0.05
+    rc, out, err = run(capsys, "register", tmp_path / "scan.ply", "--basis", tmp_path / "s.npz",
+                       "-o", tmp_path / "r3.ply", "--kernel", "linear", "--json")
+    assert rc == 0, err
+    linear = json.loads(out)
+    assert [lv["kernel"] for lv in linear["levels"]] == ["linear", "linear"]
+    assert np.abs(np.array(linear["code"]) - alpha).max() < 0.1
 
 
 def test_demo_registers_two_simulated_scans_and_writes_an_evenly_paced_geodesic(capsys, tmp_path):

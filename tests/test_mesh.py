@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from bareesa.errors import MeshError
-from bareesa.mesh import (MeshWarning, Normalisation, as_tensor, load_mesh, normalise, save_mesh,
-                       surface_center_radius, validate_mesh)
+from bareesa.mesh import (MeshWarning, Normalisation, as_tensor, face_geometry, load_mesh, normalise,
+                          save_mesh, smoothed_normals, surface_center_radius, validate_mesh, winding_parity)
 from bareesa.synthetic import blob_mesh, icosphere, random_rotation
 
 
@@ -358,3 +358,56 @@ def test_files_written_are_only_the_target(tmp_path):
     for ext in ("ply", "obj", "stl"):
         save_mesh(os.fspath(tmp_path / f"m.{ext}"), v, f)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.obj", "m.ply", "m.stl"]
+
+
+def _directed_edge_agreement(faces):
+    """Share of the edges between two faces that the faces run through in opposite directions."""
+    directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    key = np.sort(directed, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inner = counts[inverse.ravel()] == 2
+    forward = directed[:, 0] < directed[:, 1]
+    per_edge = np.bincount(inverse.ravel()[inner], weights=forward[inner].astype(float))
+    return float((per_edge[counts == 2] == 1).mean())
+
+
+def test_winding_parity_makes_randomly_flipped_faces_consistent_piece_by_piece():
+    v, f = icosphere(3)
+    other = f + len(v)  # a second, disjoint sphere
+    faces = np.concatenate([f, other])
+    flip = np.random.default_rng(0).random(len(faces)) < 0.4
+    faces[flip] = faces[flip][:, ::-1]
+    assert _directed_edge_agreement(faces) < 0.7
+    parity, pieces = winding_parity(faces)
+    assert set(np.unique(parity)) <= {-1, 1} and len(np.unique(pieces)) == 2
+    assert (pieces[:len(f)] == pieces[0]).all() and (pieces[len(f):] == pieces[len(f)]).all()
+    fixed = faces.copy()
+    fixed[parity < 0] = fixed[parity < 0][:, ::-1]
+    assert _directed_edge_agreement(fixed) == 1.0
+    # each piece is either all as the original or all reversed
+    for piece in (slice(0, len(f)), slice(len(f), None)):
+        same = ~(flip[piece] ^ (parity[piece] < 0))
+        assert same.all() or not same.any()
+
+
+def test_winding_parity_of_a_consistent_mesh_turns_nothing():
+    v, f = blob_mesh(2)
+    parity, pieces = winding_parity(f)
+    assert (parity == 1).all() and (pieces == 0).all()
+
+
+def test_smoothed_normals_of_a_noisy_sphere_point_outwards_and_keep_its_area():
+    v, f = icosphere(4)
+    noisy = v + 0.01 * np.random.default_rng(1).normal(size=v.shape)
+    vectors, areas, centres = face_geometry(noisy, f)
+    normals, projected = smoothed_normals(noisy, f, rings=2)
+    radial = centres / np.linalg.norm(centres, axis=1, keepdims=True)
+    raw_angle = np.arccos(np.clip(np.einsum("fk,fk->f", vectors / areas[:, None], radial), -1, 1)).mean()
+    smooth_angle = np.arccos(np.clip(np.einsum("fk,fk->f", normals, radial), -1, 1)).mean()
+    assert smooth_angle < 0.5 * raw_angle
+    clean_area = face_geometry(v, f)[1].sum()
+    assert areas.sum() > 1.01 * clean_area  # noise inflates the area ...
+    assert abs(projected.sum() - clean_area) < 0.6 * (areas.sum() - clean_area)  # ... the projected far less
+    flipped = f.copy()
+    flipped[::2] = flipped[::2][:, ::-1]
+    assert np.allclose(smoothed_normals(noisy, flipped, rings=2)[1], projected)

@@ -39,21 +39,21 @@ def test_symmetric_matching_of_two_scans_solves_with_the_given_metric_steps_and_
     basis, surface = sphere
     seen = {}
 
-    def fake(b, scan0, scan1, steps=10, schedule=None, weights=None, prealign=True, callback=None, cancel=None,
-             dtype=None, device="cpu"):
-        seen.update(weights=weights, steps=steps, schedule=schedule, device=device)
+    def fake(b, scan0, scan1, steps=10, schedule=None, weights=None, prealign=True, kernel="auto", callback=None,
+             cancel=None, dtype=None, device="cpu"):
+        seen.update(weights=weights, steps=steps, schedule=schedule, device=device, kernel=kernel)
         path = geodesics.straight_path(A, B, steps)
         return registration.Matching(path=path, energy=1.0, distance=1.0, transforms=(Similarity(), Similarity()),
                                      varifold=(0.0, 0.0), seconds=0.0)
 
     monkeypatch.setattr(registration, "symmetric_match", fake)
     schedule = basis.schedule[:1]
-    options = workflows.Options(weights="body", schedule=schedule, steps=5, device="meta")
+    options = workflows.Options(weights="body", schedule=schedule, steps=5, device="meta", kernel="linear")
     found = workflows.path_between(basis, raw_scan(surface, A, 4), raw_scan(surface, B, 6), 4,
                                    workflows.Options(weights="body", schedule=schedule, steps=5))
-    assert seen == {"weights": PRESETS["body"], "steps": 5, "schedule": schedule, "device": "cpu"}
+    assert seen == {"weights": PRESETS["body"], "steps": 5, "schedule": schedule, "device": "cpu", "kernel": "auto"}
     workflows.geodesic_between(basis, raw_scan(surface, A, 4), raw_scan(surface, B, 6), options)
-    assert seen["device"] == "meta"  # the caller's device reaches the matching
+    assert seen["device"] == "meta" and seen["kernel"] == "linear"  # the caller's device and kernel reach it
     assert basis.weights == PRESETS["face"]  # the caller's basis keeps its own metric
     assert found.frames.shape == (4, 4) and found.matching is not None
     for end, code in zip(found.ends, (A, B)):

@@ -257,7 +257,8 @@ def cmd_register(args):
     landmarks = read_scan_landmarks(args.landmarks, basis) if args.landmarks else None
     callback, close = tqdm_callback("register", disable=args.json or None)
     try:
-        res = code_of(basis, Scan(verts, faces, landmarks=landmarks), callback=callback).registration
+        res = code_of(basis, Scan(verts, faces, landmarks=landmarks), Options(kernel=args.kernel),
+                      callback=callback).registration
     finally:
         close()
     save_mesh(args.output, res.vertices, basis.faces)
@@ -408,6 +409,9 @@ def build_parser():
     p.add_argument("--landmarks", type=Path,
                    help="where the basis' named landmarks are on the scan: JSON {name: [x, y, z]} or CSV lines "
                         "'name, x, y, z[, weight]' (a template vertex index may stand for a name)")
+    p.add_argument("--kernel", default="auto", choices=("auto", "binet", "linear"),
+                   help="varifold kernel: auto (default) is binet, and linear at the finest level of a noisy scan "
+                        "(its faces wound consistently first); binet or linear on every level")
     p.add_argument("--json", action="store_true", help="print JSON (code, varifold, chamfer, seconds, levels)")
     p.set_defaults(func=cmd_register)
 

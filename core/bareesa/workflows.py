@@ -59,7 +59,8 @@ def mesh_input(basis, verts, faces):
 @dataclass(frozen=True)
 class Options:
     """How the workflows solve: H2 weights (None: the basis'), registration schedule (None: the
-    basis') and pre-alignment, geodesic time points and L-BFGS cap, torch device and dtype.
+    basis'), pre-alignment and varifold kernel (``registration.register``'s ``kernel``), geodesic
+    time points and L-BFGS cap, torch device and dtype.
 
     steps is the time resolution of the boundary value problem, not the number of keyframes
     written (``path_between`` resamples to those): on humanoid geodesics keyframed at 24 frames,
@@ -69,6 +70,7 @@ class Options:
     weights: H2Weights | str | None = None
     schedule: tuple | None = None
     prealign: bool = True
+    kernel: str | tuple = "auto"
     steps: int = 10
     max_iter: int = 500
     device: str = "cpu"
@@ -119,7 +121,8 @@ def code_of(basis, item, options=Options(), callback=None, cancel=None):
         res = registration.register(basis, item.verts, item.faces, schedule=options.schedule,
                                     prealign=options.prealign, landmarks=item.landmarks,
                                     scan_face_weights=item.face_weights, metric=options.weights,
-                                    callback=callback, cancel=cancel, dtype=options.dtype, device=options.device)
+                                    kernel=options.kernel, callback=callback, cancel=cancel, dtype=options.dtype,
+                                    device=options.device)
         return Code(res.code, registration=res)
     raise InputError(f"an input is a Scan, a TemplateMesh or a KnownCode, got {type(item).__name__}")
 
@@ -186,7 +189,7 @@ def geodesic_between(basis, a, b, options=Options(), callback=None, cancel=None)
     if isinstance(a, Scan) and isinstance(b, Scan):
         m = registration.symmetric_match(basis, (a.verts, a.faces), (b.verts, b.faces), steps=options.steps,
                                          schedule=options.schedule, weights=weights, prealign=options.prealign,
-                                         callback=callback, cancel=cancel, dtype=options.dtype,
+                                         kernel=options.kernel, callback=callback, cancel=cancel, dtype=options.dtype,
                                          device=options.device)
         ends = tuple(Code(e.code, registration=e) for e in matched_ends(basis, m, (a, b)))
         return LatentPath(ends=ends, path=m.path, distance=m.distance, matching=m)

@@ -22,9 +22,10 @@ from ..latent import Level
 from ..mesh import face_geometry, validate_mesh
 from ..progress import Monitor
 from ..transforms import Similarity
+from ..varifold import KERNELS
 from .poses import POSE_FINALISTS, POSE_ITER, check_pose_candidates, try_poses
 from .prealign import PREALIGN_RATIO, landmark_alignment, prealign_candidates, surface_moments
-from .problem import RegistrationProblem
+from .problem import RegistrationProblem, normal_spread
 
 SCREEN_DIVISOR = 8          # candidate alignments are screened with 1/8 of the first level's iterations
 #                             and a one-step path (the end code decides between alignments)
@@ -32,6 +33,12 @@ SCREEN_FINALISTS = 2        # the best screened alignments get a short second le
 SCREEN_SECOND_ITER = 5      # first level's sigma a body is nearly front/back symmetric...
 SCREEN_TIE = 1.5            # ... when the second best scored within this factor of the best
 PREALIGN_FRACTION = 0.1     # share of the progress bar given to the pre-alignment
+#: "auto" registers the finest level with the oriented linear kernel when the scan's normal spread
+#: (``problem.normal_spread``) is above this, else with binet: the spread biases binet's minimiser
+#: (3.6 mm at paper scale, spread 0.08) and not linear's (0.88 mm), but linear is blind at sigma to thin
+#: parts whose two sides cancel (hands), so on smooth scans (spread ~0.015) binet is better
+#: (bench/registration_accuracy)
+NOISY_SPREAD = 0.05
 #: A scan with fewer (non-zero-weight) faces than this, or than an eighth of the template's faces when
 #: that is fewer, is refused: it cannot say which of the basis' shapes it is (a one-triangle "scan"
 #: once registered for 21 minutes and came back as a full body).
@@ -53,7 +60,8 @@ class RegistrationResult:
     frame); chamfer between vertices and the scan (scan frame); seconds of wall time;
     prealignment the candidate alignment the registration started from; residual the mean distance
     from the scan to the registered surface over the basis' size (``fit_residual``); poor_fit whether
-    it is far above what the basis reaches on its own scans (``basis.fit_check``; None uncalibrated).
+    it is far above what the basis reaches on its own scans (``basis.fit_check``; None uncalibrated);
+    normal_spread the scan's (``problem.normal_spread``), which chose the finest kernel of "auto".
     """
 
     code: np.ndarray
@@ -67,10 +75,13 @@ class RegistrationResult:
     prealignment: Similarity = None
     residual: float = None
     poor_fit: bool = None
+    normal_spread: float = None
 
     def to_json(self):
-        """JSON-ready summary {code, varifold, chamfer, residual, poor_fit, seconds, levels, transform}."""
+        """JSON-ready summary {code, varifold, chamfer, residual, poor_fit, normal_spread, seconds, levels,
+        transform}."""
         return {"code": [float(c) for c in self.code], "varifold": float(self.varifold),
+                "normal_spread": None if self.normal_spread is None else float(self.normal_spread),
                 "chamfer": float(self.chamfer), "seconds": float(self.seconds),
                 "residual": None if self.residual is None else float(self.residual), "poor_fit": self.poor_fit,
                 "levels": [{k: (float(v) if isinstance(v, float) else v) for k, v in lv.items()}
@@ -87,6 +98,25 @@ def _check_schedule(schedule):
     if not levels:
         raise InputError("the registration schedule is empty")
     return levels
+
+
+def level_kernels(kernel, n_levels, noisy=False):
+    """The varifold kernel of each level: "auto" binet on every level, except that the finest is linear
+    when the scan is ``noisy`` (see ``register``; a one-level schedule stays binet: no fit to orient
+    the scan by); a name of ``KERNELS`` (or a sum, "binet+linear") on every level; or a sequence of
+    names, one per level."""
+    if isinstance(kernel, str):
+        auto = ["binet"] * (n_levels - 1) + ["linear" if noisy and n_levels > 1 else "binet"]
+        names = auto if kernel == "auto" else [kernel] * n_levels
+    else:
+        names = list(kernel)
+        if len(names) != n_levels:
+            raise InputError(f"kernel: {len(names)} kernels given for a schedule of {n_levels} levels")
+    for name in names:
+        if not (isinstance(name, str) and all(part in KERNELS for part in name.split("+"))):
+            raise InputError(f"unknown varifold kernel {name!r}; choose 'auto', one of {sorted(KERNELS)} "
+                             "or a sum of them such as 'binet+linear'")
+    return names
 
 
 def _check_face_weights(weights, n_faces):
@@ -162,7 +192,7 @@ def is_poor_fit(basis, residual):
 
 
 def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, landmarks=None,
-             landmark_weight=1.0, scan_face_weights=None, metric=None, kernel="binet", backend="auto",
+             landmark_weight=1.0, scan_face_weights=None, metric=None, kernel="auto", backend="auto",
              binning="auto", refine_transform=None, init_code=None, pose_candidates="auto", callback=None, cancel=None,
              dtype=torch.float64, device="cpu"):
     """Latent code of an unregistered scan: basis, scan (M, 3), (G, 3) -> RegistrationResult.
@@ -172,11 +202,16 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     [, weight])], adding weight * landmark_weight * A * sum_i w_i |S F(alpha)_i - T p_i|^2 / sum w
     (A the template area: comparable to the varifold of a surface offset by the same distance);
     scan_face_weights (G,) >= 0 (0 ignores a face, e.g. a floor); metric: H2 weights (default
-    the basis'); kernel, backend: of the varifold (``core.varifold``); binning: "auto" evaluates
-    a level's varifold on cell sums (``BinnedVarifoldLoss``) when sigma is so large that this
-    cuts the face pairs 20-fold, True always, False never (an unbinned level still sums the scan
-    alone over cells of SCAN_CELL x sigma when that leaves fewer points, ``VarifoldLoss(target_cell=)``,
-    and truncates the kernel at FINE_TOL); refine_transform: optimise the
+    the basis'); kernel: of the varifold, per level (``level_kernels``): "auto" (default) is binet
+    (orientation-free) on every level, except that a noisy scan (``normal_spread`` above NOISY_SPREAD)
+    is matched at the finest level with the oriented linear kernel, whose minimiser the noise does not
+    bias; an oriented kernel on a level after the first runs on the scan's faces wound consistently and
+    turned like the fit so far (``problem.orient_like``), so flipped faces do no harm; backend: of the
+    varifold (``bareesa.varifold``); binning: "auto" evaluates a level's varifold on cell sums
+    (``BinnedVarifoldLoss``) when sigma is so large that this cuts the face pairs 20-fold, True
+    always, False never (an unbinned level still sums the scan alone over cells of SCAN_CELL x sigma
+    when that leaves fewer points, ``VarifoldLoss(target_cell=)``, and truncates the kernel at
+    FINE_TOL); refine_transform: optimise the
     similarity jointly with the path (default: as prealign); init_code (P,) starts from the
     straight path 0 -> init_code; pose_candidates (K, P): codes whose pose group (the whole code
     when the basis has no other group) is tried as a start of the second level (see POSE_FINALISTS),
@@ -197,6 +232,8 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     if not (math.isfinite(landmark_weight) and landmark_weight >= 0):
         raise InputError(f"landmark_weight must be finite and >= 0, got {landmark_weight}")
     levels = _check_schedule(basis.schedule if schedule is None else schedule)
+    spread = normal_spread(sv, sf, face_w)
+    kernels = level_kernels(kernel, len(levels), noisy=spread > NOISY_SPREAD)
     if binning not in ("auto", True, False):
         raise InputError(f"binning must be 'auto', True or False, got {binning!r}")
     metric = H2Weights.parse(basis.weights if metric is None else metric)
@@ -221,8 +258,8 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
                 candidates = [(0.0, by_marks)] + candidates
     else:
         candidates = [(0.0, Similarity())]
-    problem = RegistrationProblem(basis, sv, sf, face_w, marks, landmark_weight, metric, kernel, backend, binning,
-                       refine_transform, dtype, device, monitor)
+    problem = RegistrationProblem(basis, sv, sf, face_w, marks, landmark_weight, metric, backend, binning,
+                                  refine_transform, dtype, device, monitor)
 
     # progress: the first level is tried from every candidate alignment
     budget = np.array([lv.steps * lv.max_iter for lv in levels], dtype=np.float64)
@@ -242,7 +279,8 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     for j, (_, transform) in enumerate(candidates):
         span = (mid - bounds[0]) / len(candidates)
         tries.append(problem.solve_level(screen, path, transform, (bounds[0] + j * span, bounds[0] + (j + 1) * span),
-                                         name(0) + (f" (alignment {j + 1}/{len(candidates)})" if j else "")))
+                                         name(0) + (f" (alignment {j + 1}/{len(candidates)})" if j else ""),
+                                         kernels[0]))
     best, resume = 0, None
     if len(tries) > 1:
         # the screened objectives ranked on fine cells; the finer second level decides between the best
@@ -252,24 +290,26 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
         finalists = [int(j) for j in order[:SCREEN_FINALISTS] if scores[j] <= SCREEN_TIE * scores[best]]
         if len(levels) > 1 and len(finalists) > 1:
             short = replace(levels[1], max_iter=SCREEN_SECOND_ITER)
-            second = [problem.solve_level(short, tries[j][0], tries[j][1], (mid, mid), name(1) + " (screening)")
-                      for j in finalists]
+            second = [problem.solve_level(short, tries[j][0], tries[j][1], (mid, mid), name(1) + " (screening)",
+                                          kernels[1], orient=True) for j in finalists]
             k = int(np.argmin([problem.screen_score(levels[1], p[-1], t, r["energy"]) for p, t, r in second]))
             best, resume = finalists[k], second[k]  # the second level goes on from the winner's short one
     (path, transform, first), initial = tries[best], candidates[best][1]
     if resume is not None:
         path, transform = resume[0], resume[1]
     elif screen is not levels[0]:
-        path, transform, first = problem.solve_level(levels[0], path, transform, (mid, bounds[1]), name(0))
+        path, transform, first = problem.solve_level(levels[0], path, transform, (mid, bounds[1]), name(0),
+                                                     kernels[0])
     report = [first]
     monitor.report(bounds[1], f"{name(0)} done", first["objective"])
     for k in range(1, len(levels)):
         span = (bounds[k], bounds[k + 1])
         if k == 1 and tries_poses:
             path, transform, share = try_poses(problem, basis, levels[1], levels[min(2, len(levels) - 1)], path,
-                                                transform, poses, span, name(1))
+                                                transform, poses, span, name(1), kernels[1])
             span = (span[0] + share * (span[1] - span[0]), span[1])
-        path, transform, lv_report = problem.solve_level(levels[k], path, transform, span, name(k))
+        path, transform, lv_report = problem.solve_level(levels[k], path, transform, span, name(k), kernels[k],
+                                                         orient=True)
         report.append(lv_report)
         monitor.report(bounds[k + 1], f"{name(k)} done", lv_report["objective"])
 
@@ -281,4 +321,4 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     return RegistrationResult(code=code, vertices=vertices, path=path, transform=transform, levels=report,
                               varifold=report[-1]["varifold"], chamfer=chamfer(vertices, used),
                               seconds=time.perf_counter() - start_time, prealignment=initial, residual=residual,
-                              poor_fit=is_poor_fit(basis, residual))
+                              poor_fit=is_poor_fit(basis, residual), normal_spread=spread)

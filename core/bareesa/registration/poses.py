@@ -54,9 +54,10 @@ def pose_starts(basis, candidates, code):
 
 
 
-def try_poses(problem, basis, level, judge, path, transform, candidates, progress, message):
-    """The pose-candidate stage before ``level`` (see POSE_FINALISTS): -> (path, transform, share of
-    ``progress`` used). The path returned is the best short solve, or ``path`` when no candidate is close.
+def try_poses(problem, basis, level, judge, path, transform, candidates, progress, message, kernel="binet"):
+    """The pose-candidate stage before ``level`` (see POSE_FINALISTS), its short solves with the level's
+    ``kernel``: -> (path, transform, share of ``progress`` used). The path returned is the best short
+    solve, or ``path`` when no candidate is close.
 
     Every start (the current end code and each candidate) is first re-aligned to the scan on its own
     (``CoarseVarifold`` at the level's sigma, from the current alignment): the pre-alignment matched
@@ -77,6 +78,7 @@ def try_poses(problem, basis, level, judge, path, transform, candidates, progres
     step = (hi - lo) * total / full / (len(pick) + 1)
     firsts = [(path, aligned[0])] + [(np.stack([np.zeros_like(code), starts[j]]), aligned[1 + j]) for j in pick]
     tries = [problem.solve_level(short, p, t, (lo + i * step, lo + (i + 1) * step),
-                                 f"{message} (pose {i + 1}/{len(pick) + 1})") for i, (p, t) in enumerate(firsts)]
+                                 f"{message} (pose {i + 1}/{len(pick) + 1})", kernel, orient=True)
+             for i, (p, t) in enumerate(firsts)]
     best = int(np.argmin([problem.screen_score(judge, p[-1], t, r["energy"]) for p, t, r in tries]))
     return tries[best][0], tries[best][1], total / full

@@ -11,13 +11,14 @@ import time
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from .. import h2_metric
 from ..latent import decode, time_whitening, whitening
-from ..mesh import face_geometry
+from ..mesh import face_geometry, smoothed_normals, winding_parity
 from ..optimize import minimize_lbfgs
 from ..transforms import Similarity, axis_angle_rotation
-from ..varifold import BIN_CELL, BinnedVarifoldLoss, VarifoldLoss, default_cutoff
+from ..varifold import BIN_CELL, BinnedVarifoldLoss, VarifoldLoss, default_cutoff, is_oriented
 from .prealign import PREALIGN_CELL, CoarseVarifold, coarse_measure, surface_moments
 
 #: L-BFGS stops a level when an iteration lowers the objective by less than this relative amount
@@ -32,6 +33,18 @@ BIN_GAIN = 0.05             # "auto" bins a level when that leaves at most this 
 #: ``binned_measure`` (None: the scan's faces are used as they are)
 FINE_TOL = 1e-4
 SCAN_CELL = 0.5
+#: ... and for an oriented kernel (linear), whose accuracy the coarser cells cost: paper scale 1.23 mm
+#: at sigma/2, 0.88 at sigma/3.3, 0.85 at sigma/4, 0.78 unbinned (bench/registration_accuracy)
+ORIENTED_SCAN_CELL = 0.3
+#: Unbinned levels with an orientation-free kernel may see the scan's normals denoised over rings of
+#: neighbouring faces (``mesh.smoothed_normals``) out to about this x sigma (rings = radius / mean edge
+#: length, at most SCAN_NORMAL_RINGS). Off (0): at paper scale it cuts binet's noise bias from 3.6 to
+#: 2.5 mm (1.9 at 2 sigma), but the linear kernel that a noisy scan gets removes it (0.88 mm), and on
+#: coarse clean scans the smoothing costs accuracy (bench/registration_accuracy)
+SCAN_NORMAL_RADIUS = 0.0
+SCAN_NORMAL_RINGS = 8
+#: the kernel candidate alignments and poses are compared with: it ignores the scan's face orientation
+SCREEN_KERNEL = "binet"
 #: a level changes the similarity's scale by at most this factor (log): pre-alignment matched the
 #: surface areas, and a free scale let wrong alignments grow the template over the scan (x1.9)
 SCALE_LOG_LIMIT = math.log(1.15)
@@ -104,6 +117,43 @@ class PathVariables:
         return np.concatenate([path[-1:] @ np.linalg.inv(self.b_end), inner])
 
 
+def orient_like(verts, faces, ref_verts, ref_faces, weights=None):
+    """Faces (G, 3) of a mesh (verts (M, 3)) wound consistently (``mesh.winding_parity``), each connected
+    piece turned to face like a reference surface (N, 3), (F, 3) in the same frame: the area-weighted
+    vote of its faces' normals (times face weights (G,), e.g. an ignore mask's) against the normal of
+    the nearest reference face (by barycentre) -> (faces (G, 3) int64 numpy, number of faces turned).
+
+    A scan with flipped or inconsistently wound faces, registered at a coarse level, can then be
+    matched with an oriented kernel. Winding, not each face's own normal, decides: on a noisy scan
+    some small faces really point backwards, and the oriented kernel's insensitivity to noise (a
+    patch's sum of a n depends only on its boundary) needs them kept as they are.
+    """
+    faces = np.array(faces, dtype=np.int64)
+    parity, pieces = winding_parity(faces)
+    vectors, _, centres = face_geometry(verts, faces)
+    ref_vectors, ref_areas, ref_centres = face_geometry(ref_verts, ref_faces)
+    nearest = cKDTree(ref_centres).query(centres, k=1)[1]
+    ref_normals = ref_vectors[nearest] / np.maximum(ref_areas[nearest], 1e-300)[:, None]
+    agreement = parity * np.einsum("gk,gk->g", vectors, ref_normals)
+    if weights is not None:
+        agreement = agreement * np.asarray(weights, dtype=np.float64)
+    vote = np.bincount(pieces, weights=agreement, minlength=int(pieces.max()) + 1)
+    turn = parity * np.where(vote[pieces] < 0, -1, 1) < 0
+    faces[turn] = faces[turn][:, [0, 2, 1]]
+    return faces, int(turn.sum())
+
+
+def normal_spread(verts, faces, weights=None):
+    """How much a scan's normals are spread by noise: 1 - (projected area / area) of its faces against
+    their normals denoised over 2 rings of neighbours (``mesh.smoothed_normals``):
+    (M, 3), (G, 3), face weights (G,) or None -> float in [0, 1] (~0.005 on a clean body mesh, 0.08
+    with 2 mm noise on 5 mm faces). Invariant under similarities."""
+    _, projected = smoothed_normals(verts, faces, 2)
+    areas = face_geometry(verts, faces)[1]
+    w = np.ones(len(areas)) if weights is None else np.asarray(weights, dtype=np.float64)
+    return float(1.0 - (w * projected).sum() / max((w * areas).sum(), 1e-300))
+
+
 def _normal_gram(verts, faces, fields):
     """N_ij = sum_v A_v (h_i . n_v)(h_j . n_v): the L2 metric of the fields' normal components at the
     template: (N, 3), (F, 3), (P, N, 3) -> (P, P) numpy."""
@@ -120,7 +170,7 @@ def _normal_gram(verts, faces, fields):
 class RegistrationProblem:
     """The constant parts of a registration (template tensors, scan, landmarks) and one level's solve."""
 
-    def __init__(self, basis, sv, sf, face_w, marks, landmark_weight, metric, kernel, backend, binning,
+    def __init__(self, basis, sv, sf, face_w, marks, landmark_weight, metric, backend, binning,
                  refine_transform, dtype, device, monitor):
         self.binning = binning
         self.template, self.faces, self.fields = basis.tensors(dtype=dtype, device=device)
@@ -132,14 +182,15 @@ class RegistrationProblem:
         self.whiten = whitening(self.gram)
         self.normal_gram = _normal_gram(basis.template, basis.faces, basis.fields)
         self.radius = math.sqrt(((basis.template - self.center) ** 2).sum(-1).mean())
-        self.scan, self.scan_faces = sv, torch.as_tensor(sf, dtype=torch.long, device=device)
+        self.scan, self.scan_faces_np = sv, sf
+        self.scan_faces = torch.as_tensor(sf, dtype=torch.long, device=device)
         self.scan_weights = None if face_w is None else torch.as_tensor(face_w, dtype=dtype, device=device)
         self.marks = marks
         if marks is not None:
             self.lm_idx = torch.as_tensor(marks[0], device=device)
             self.lm_w = torch.as_tensor(marks[2] / marks[2].sum() * landmark_weight * area, dtype=dtype,
                                         device=device)
-        self.metric, self.kernel, self.backend = metric, kernel, backend
+        self.metric, self.backend = metric, backend
         self.n_extra = 7 if refine_transform else 0
         self.dtype, self.device, self.monitor = dtype, device, monitor
         self.scale, self.n_fields = basis.scale, basis.n_fields
@@ -180,7 +231,7 @@ class RegistrationProblem:
 
     def screen_score(self, level, code, transform, energy):
         """weight * (Gamma + landmark term) + energy of a solved path at ``level``'s sigma and weight,
-        Gamma on a binning of both surfaces with cells of SCREEN_CELL x sigma.
+        Gamma (kernel SCREEN_KERNEL) on a binning of both surfaces with cells of SCREEN_CELL x sigma.
 
         A level's objective bins with cells of BIN_CELL x sigma; its error (a difference of large
         kernel sums) depends on how each alignment falls on the cells, enough to rank a wrong
@@ -192,7 +243,7 @@ class RegistrationProblem:
         code = torch.as_tensor(code, dtype=self.dtype, device=self.device)
         with torch.no_grad():
             final = decode(self.template, self.fields, code)
-            loss = BinnedVarifoldLoss(final, self.faces, target, self.scan_faces, sigma, self.kernel,
+            loss = BinnedVarifoldLoss(final, self.faces, target, self.scan_faces, sigma, SCREEN_KERNEL,
                                       self.scan_weights, cell=SCREEN_CELL * sigma, backend=self.backend)
             fit = loss(final, self.faces)
             if self.marks is not None:
@@ -207,28 +258,63 @@ class RegistrationProblem:
         """sum_i w_i |F_i - p_i|^2 of the landmark vertices of ``final`` (N, 3) against ``points`` (L, 3)."""
         return (self.lm_w * ((final[self.lm_idx] - points) ** 2).sum(1)).sum()
 
-    def solve_level(self, level, path, transform, progress, message):
-        """Minimise one level from path (T0+1, P) and the alignment -> (path (T+1, P), alignment, report)."""
+    def oriented_scan_faces(self, code, transform):
+        """The scan's faces turned like the nearest faces of F(code) (``orient_like``, template frame):
+        code (P,), transform scan -> template -> (faces (G, 3) tensor, number turned)."""
+        with torch.no_grad():
+            fit = decode(self.template, self.fields, torch.as_tensor(code, dtype=self.dtype, device=self.device))
+        weights = None if self.scan_weights is None else self.scan_weights.cpu().numpy()
+        faces, turned = orient_like(transform.apply(self.scan), self.scan_faces_np, fit.cpu().numpy(),
+                                    self.faces.cpu().numpy(), weights)
+        return torch.as_tensor(faces, dtype=torch.long, device=self.device), turned
+
+    def level_loss(self, kernel, sigma, target, scan_faces, code):
+        """The varifold loss of one level against the scan (target (M, 3) in the template frame):
+        binned (``BinnedVarifoldLoss`` about F(code)) as ``self.binning`` says, else truncated at
+        FINE_TOL with the scan summed over cells of SCAN_CELL (ORIENTED_SCAN_CELL for an oriented kernel)
+        x sigma -> (loss, binned)."""
+        if self.binning:
+            start = decode(self.template, self.fields, torch.as_tensor(code, dtype=self.dtype, device=self.device))
+            loss = BinnedVarifoldLoss(start, self.faces, target, scan_faces, sigma, kernel, self.scan_weights,
+                                      cell=BIN_CELL * sigma, backend=self.backend)
+            n_s, n_t = self.faces.shape[0], scan_faces.shape[0]
+            pairs = loss.n_groups * (loss.n_groups + loss.n_target)
+            if self.binning is True or pairs <= BIN_GAIN * n_s * (n_s + n_t):
+                return loss, True
+        weights, normals, rings = self.scan_weights, None, 0
+        if SCAN_NORMAL_RADIUS and not is_oriented(kernel):
+            verts, faces = target.detach().cpu().numpy(), scan_faces.cpu().numpy()
+            edge = np.linalg.norm(verts[faces] - verts[faces[:, [1, 2, 0]]], axis=2).mean()
+            rings = min(SCAN_NORMAL_RINGS, int(SCAN_NORMAL_RADIUS * sigma / edge))
+        if rings:
+            normals, projected = smoothed_normals(verts, faces, rings)
+            areas = face_geometry(verts, faces)[1]
+            share = torch.as_tensor(projected / np.maximum(areas, 1e-300), dtype=self.dtype, device=self.device)
+            weights = share if weights is None else weights * share
+            normals = torch.as_tensor(normals, dtype=self.dtype, device=self.device)
+        cell = ORIENTED_SCAN_CELL if is_oriented(kernel) else SCAN_CELL
+        return VarifoldLoss(target, scan_faces, sigma, kernel=kernel, backend=self.backend, target_weights=weights,
+                            cutoff=default_cutoff(sigma, FINE_TOL), target_normals=normals,
+                            target_cell=None if cell is None else cell * sigma), False
+
+    def solve_level(self, level, path, transform, progress, message, kernel="binet", orient=False):
+        """Minimise one level from path (T0+1, P) and the alignment -> (path (T+1, P), alignment, report).
+
+        kernel: the varifold's (a name of ``bareesa.varifold.KERNELS``, or names joined by "+": the sum
+        of their varifolds); orient: with an oriented kernel, first turn the scan's faces like the fit
+        so far (``oriented_scan_faces``), else use them as given."""
         t0 = time.perf_counter()
         self.monitor.check()
         dtype, device, p_dim, steps = self.dtype, self.device, self.n_fields, level.steps
         sigma = level.sigma * self.scale
         target = torch.as_tensor(transform.apply(self.scan), dtype=dtype, device=device)
-        loss = None
-        if self.binning:
-            code = torch.as_tensor(path[-1], dtype=dtype, device=device)
-            loss = BinnedVarifoldLoss(decode(self.template, self.fields, code), self.faces, target,
-                                      self.scan_faces, sigma, self.kernel, self.scan_weights,
-                                      cell=BIN_CELL * sigma, backend=self.backend)
-            n_s, n_t = self.faces.shape[0], self.scan_faces.shape[0]
-            pairs = loss.n_groups * (loss.n_groups + loss.n_target)
-            if self.binning == "auto" and pairs > BIN_GAIN * n_s * (n_s + n_t):
-                loss = None
-        binned = loss is not None
-        if not binned:
-            loss = VarifoldLoss(target, self.scan_faces, sigma, kernel=self.kernel, backend=self.backend,
-                                target_weights=self.scan_weights, cutoff=default_cutoff(sigma, FINE_TOL),
-                                target_cell=None if SCAN_CELL is None else SCAN_CELL * sigma)
+        names = kernel.split("+")
+        scan_faces, turned = self.scan_faces, None
+        if orient and any(is_oriented(name) for name in names):
+            scan_faces, turned = self.oriented_scan_faces(path[-1], transform)
+        losses = [self.level_loss(name, sigma, target, scan_faces, path[-1]) for name in names]
+        binned = losses[0][1]
+        losses = [loss for loss, _ in losses]
         if self.marks is not None:
             lm_pts = self.landmark_points(transform)
         terms = {}
@@ -244,7 +330,7 @@ class RegistrationProblem:
                 rotation = axis_angle_rotation(p[:3])
                 final = (self.center_t + torch.exp(log_scale(p[6])) * (final - self.center_t) @ rotation.T
                          + p[3:6])
-            gamma = loss(final, self.faces)
+            gamma = sum(loss(final, self.faces) for loss in losses)
             fit = gamma
             if self.marks is not None:
                 fit = fit + self.landmark_term(final, lm_pts)
@@ -282,4 +368,5 @@ class RegistrationProblem:
         return path, transform, {"sigma": float(sigma), "weight": float(level.weight), "steps": int(steps),
                                  "iterations": int(nit), "energy": float(terms["energy"]),
                                  "varifold": float(terms["gamma"]), "objective": float(value),
-                                 "binned": binned, "seconds": time.perf_counter() - t0}
+                                 "binned": binned, "kernel": kernel, "turned_faces": turned,
+                                 "seconds": time.perf_counter() - t0}

@@ -14,8 +14,9 @@ from ..latent import decode
 from ..optimize import minimize_lbfgs
 from ..progress import Monitor
 from ..transforms import Similarity
-from ..varifold import VarifoldLoss
-from .multiscale import register
+from ..varifold import VarifoldLoss, is_oriented
+from .multiscale import level_kernels, register
+from .problem import orient_like
 
 @dataclass
 class Matching:
@@ -42,15 +43,16 @@ class Matching:
         return np.stack([self.frame_transform(float(t)).invert(v) for t, v in zip(times, frames)])
 
 
-def symmetric_match(basis, scan0, scan1, steps=10, schedule=None, weights=None, prealign=True, callback=None,
-                    cancel=None, dtype=torch.float64, device="cpu"):
+def symmetric_match(basis, scan0, scan1, steps=10, schedule=None, weights=None, prealign=True, kernel="auto",
+                    callback=None, cancel=None, dtype=torch.float64, device="cpu"):
     """Codes of two raw scans and the geodesic between them in one optimisation (paper eq. sym. match).
 
     scan0, scan1: (verts (M, 3), faces (G, 3)). Each scan is first registered (warm start,
     its own pre-alignment unless prealign is False); then weight * [Gamma(F(alpha_0), q0) +
     Gamma(F(alpha_1), q1)] + E(alpha) is minimised jointly over the whole path at the finest level
-    of the schedule. weights: the H2 weights of E and of the registrations (default the basis');
-    dtype, device: of the objective.
+    of the schedule, with the finest kernel each scan's registration used (``register``'s ``kernel``;
+    an oriented one on the scan's faces turned like its registration). weights: the H2 weights of E
+    and of the registrations (default the basis'); dtype, device: of the objective.
     """
     start = time.perf_counter()
     if steps < 2:
@@ -58,16 +60,23 @@ def symmetric_match(basis, scan0, scan1, steps=10, schedule=None, weights=None, 
     monitor = Monitor("symmetric matching", callback, cancel)
     levels = tuple(basis.schedule if schedule is None else schedule)
     weights = H2Weights.parse(basis.weights if weights is None else weights)
-    options = dict(schedule=levels, prealign=prealign, metric=weights, cancel=cancel, dtype=dtype, device=device)
+    level_kernels(kernel, len(levels))  # checked before any solve
+    options = dict(schedule=levels, prealign=prealign, metric=weights, kernel=kernel, cancel=cancel, dtype=dtype,
+                   device=device)
     r0 = register(basis, *scan0, callback=monitor.scaled(0.0, 0.4), **options)
     r1 = register(basis, *scan1, callback=monitor.scaled(0.4, 0.8), **options)
     template, faces, fields = basis.tensors(dtype=dtype, device=device)
     last = levels[-1]
     sigma = last.sigma * basis.scale
-    losses = [VarifoldLoss(torch.as_tensor(r.transform.apply(np.asarray(v, dtype=np.float64)), dtype=dtype,
-                                           device=device),
-                           torch.as_tensor(np.asarray(f), dtype=torch.long, device=device), sigma)
-              for r, (v, f) in ((r0, scan0), (r1, scan1))]
+    losses = []
+    for r, (v, f) in ((r0, scan0), (r1, scan1)):
+        v = r.transform.apply(np.asarray(v, dtype=np.float64))
+        names = r.levels[-1]["kernel"].split("+")  # each scan's finest kernel, as its registration chose
+        if any(is_oriented(name) for name in names):
+            f = orient_like(v, f, r.transform.apply(r.vertices), basis.faces)[0]
+        losses.append([VarifoldLoss(torch.as_tensor(v, dtype=dtype, device=device),
+                                    torch.as_tensor(np.asarray(f), dtype=torch.long, device=device), sigma, name)
+                       for name in names])
     p = fields.shape[0]
     ramp = torch.linspace(0, 1, steps, dtype=dtype, device=device)[1:-1, None]
     terms = {}
@@ -79,7 +88,7 @@ def symmetric_match(basis, scan0, scan1, steps=10, schedule=None, weights=None, 
         path = torch.cat([a0[None], (1 - ramp) * a0 + ramp * a1 + dev, a1[None]])
         meshes = decode(template, fields, path)
         energy = path_energy(meshes, faces, weights)
-        gammas = [losses[0](meshes[0], faces), losses[1](meshes[-1], faces)]
+        gammas = [sum(loss(mesh, faces) for loss in losses[k]) for k, mesh in ((0, meshes[0]), (1, meshes[-1]))]
         terms.update(energy=energy, gammas=gammas)
         return last.weight * (gammas[0] + gammas[1]) + energy
 

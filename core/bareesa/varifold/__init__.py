@@ -73,11 +73,12 @@ when the cutoff is below a quarter of the bounding-box diagonal of both meshes, 
 """
 
 from . import kernels
-from .kernels import BACKENDS, DEFAULT_TOL, KERNELS, choose_backend, default_cutoff, keops_available
+from .kernels import (BACKENDS, DEFAULT_TOL, KERNELS, choose_backend, default_cutoff, is_oriented,
+                      keops_available)
 from .loss import BIN_CELL, BinnedMeasureLoss, BinnedVarifoldLoss, VarifoldLoss, varifold_distance, varifold_inner
 from .measure import binned_measure, cell_features, group_features, moved_measure, varifold_measure
 
 __all__ = ["BACKENDS", "BIN_CELL", "BinnedMeasureLoss", "BinnedVarifoldLoss", "DEFAULT_TOL", "KERNELS",
            "VarifoldLoss", "binned_measure", "cell_features", "choose_backend", "default_cutoff",
-           "group_features", "keops_available", "kernels", "moved_measure", "varifold_distance",
+           "group_features", "is_oriented", "keops_available", "kernels", "moved_measure", "varifold_distance",
            "varifold_inner", "varifold_measure"]

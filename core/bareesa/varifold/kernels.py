@@ -37,6 +37,12 @@ def keops_available():
     return _KEOPS
 
 
+def is_oriented(kernel):
+    """Whether a kernel tells a face from its flipped copy (an odd term c1 t): then the scan's faces
+    must be wound consistently with the template's."""
+    return KERNELS[kernel][1] != 0.0
+
+
 def default_cutoff(sigma, tol=DEFAULT_TOL):
     """Cutoff radius beyond which the spatial kernel is <= tol: sigma * sqrt(log(1/tol))."""
     return float(sigma) * math.sqrt(math.log(1.0 / tol))

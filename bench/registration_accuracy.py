@@ -1,0 +1,199 @@
+"""Where registration accuracy goes, factor by factor (issue: converge as far as the paper's code).
+
+Three kinds of input, each registered with the shipped default and with one factor changed at a time:
+1. ``paper``: the paper-scale instance of ``bench.registration_speed`` (6,890-vertex DFAUST template,
+   P = 170 smooth fields, a 55k-face scan with 2 mm noise, true code known): vertex error.
+2. ``human``: simulated scans (voxel remesh, holes, random rotation and scale, vertex noise 1 and 4 mm)
+   of held-out people of the bundled ``human`` basis in a held-out motion (lunge, middle frame;
+   regenerated with Anny, the ``[bases]`` extra, or read from ``--truths FILE`` written by an earlier
+   run): vertex error.
+3. ``real``: the DFAUST template (a real body) in random orientations, registered with ``human``:
+   mean surface distance both ways and Hausdorff (needs ``bpy``).
+The factors are module constants of ``bareesa.registration.problem`` and ``register``'s options; a
+row says what it changes from the default. Wall and CPU seconds beside (2-core CPU: compare rows of
+one run only).
+
+Usage: python -m bench.registration_accuracy [--parts paper human real] [--scans N] [--real N]
+       [--truths FILE] [--threads 1]
+"""
+
+import argparse
+import contextlib
+import time
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+import bench.common  # noqa: F401  (puts the repo on sys.path)
+from bench.common import OUT, markdown_table, report
+from bareesa import evaluation
+from bareesa.basis_io import load_basis
+from bareesa.registration import problem, register
+from bareesa.scan_simulator import apply_similarity, simulate_scan
+
+#: The shipped state before this bench chose the default: binet on every level, the scan summed
+#: over cells of sigma / 2 at the finest level (whatever the kernel), its normals as they are.
+BEFORE = {"kernel": "binet", "SCAN_CELL": 0.5, "ORIENTED_SCAN_CELL": 0.5}
+LINEAR_FINEST = ("binet", "binet", "linear")
+
+#: (name, changes) for the paper-scale instance; changes are register() options, problem constants
+#: (upper case), "iters" (each level's max_iter), "finest_weight" (x the finest level's weight),
+#: "half_sigma_level" (a fourth level at half the finest sigma) and "dtype".
+PAPER_FACTORS = [
+    ("before: binet, scan cells sigma/2", BEFORE),
+    ("binet, scan cells sigma/4", {**BEFORE, "SCAN_CELL": 0.25}),
+    ("binet, scan not binned, truncation 1e-6", {**BEFORE, "SCAN_CELL": None, "FINE_TOL": 1e-6}),
+    ("binet, no plateau stop, caps 100/100/200", {**BEFORE, "LEVEL_PLATEAU": None, "iters": (100, 100, 200)}),
+    ("binet, finest weight x10", {**BEFORE, "finest_weight": 10.0}),
+    ("binet, a fourth level at sigma/2", {**BEFORE, "half_sigma_level": True}),
+    ("binet, float32", {**BEFORE, "dtype": "float32"}),
+    ("binet, scan normals denoised over sigma", {**BEFORE, "SCAN_NORMAL_RADIUS": 1.0}),
+    ("binet, scan normals denoised over 2 sigma", {**BEFORE, "SCAN_NORMAL_RADIUS": 2.0}),
+    ("linear on every level", {**BEFORE, "kernel": "linear"}),
+    ("binet, linear at the finest level", {**BEFORE, "kernel": LINEAR_FINEST}),
+    ("binet, linear at the finest level, scan cells sigma/4",
+     {**BEFORE, "kernel": LINEAR_FINEST, "ORIENTED_SCAN_CELL": 0.25}),
+    ("binet, linear at the finest level, scan not binned",
+     {**BEFORE, "kernel": LINEAR_FINEST, "ORIENTED_SCAN_CELL": None}),
+    ("binet, binet+linear at the finest level, normals denoised",
+     {**BEFORE, "kernel": ("binet", "binet", "binet+linear"), "SCAN_NORMAL_RADIUS": 1.0}),
+    ("default now (noisy scan: linear at the finest level, scan cells sigma/3.3)", {}),
+    ("default now, float32", {"dtype": "float32"}),
+]
+#: the rows of the human and real-body parts (each registration is minutes on this CPU)
+BODY_FACTORS = [
+    ("before: binet, scan cells sigma/2", BEFORE),
+    ("default now", {}),
+    ("linear at the finest level (forced)", {"kernel": LINEAR_FINEST}),
+]
+#: vertex noise (m) of the human scans: the simulator's default, and four times it (normal spread
+#: ~0.015 and ~0.135: the default's finest kernel is binet for the first, linear for the second)
+HUMAN_NOISE = (0.001, 0.004)
+HUMAN_SCAN = dict(remesh="voxel", holes=3, scale=0.1)
+
+
+@contextlib.contextmanager
+def constants(changes):
+    """Set the upper-case entries of ``changes`` on ``bareesa.registration.problem`` for a while."""
+    names = [k for k in changes if k.isupper()]
+    saved = {k: getattr(problem, k) for k in names}
+    try:
+        for k in names:
+            setattr(problem, k, changes[k])
+        yield
+    finally:
+        for k, v in saved.items():
+            setattr(problem, k, v)
+
+
+def run(basis, verts, faces, changes):
+    """register() with ``changes`` -> (result, wall s, CPU s)."""
+    schedule = list(basis.schedule)
+    if "iters" in changes:
+        schedule = [replace(lv, max_iter=m) for lv, m in zip(schedule, changes["iters"])]
+    if "finest_weight" in changes:
+        schedule[-1] = replace(schedule[-1], weight=schedule[-1].weight * changes["finest_weight"])
+    if changes.get("half_sigma_level"):
+        schedule.append(replace(schedule[-1], sigma=schedule[-1].sigma / 2, max_iter=40))
+    options = {"kernel": changes.get("kernel", "auto"), "dtype": getattr(torch, changes.get("dtype", "float64"))}
+    if "kernel" in changes and not isinstance(changes["kernel"], str) and len(schedule) != 3:
+        raise SystemExit("a per-level kernel row needs a three-level schedule")
+    with constants(changes):
+        t0, c0 = time.perf_counter(), time.process_time()
+        res = register(basis, verts, faces, schedule=schedule, **options)
+        return res, time.perf_counter() - t0, time.process_time() - c0
+
+
+def paper_rows(log=print):
+    from bench.body_data import body_basis, body_scan
+
+    basis = body_basis("registration_accuracy")
+    truth = np.random.default_rng(3).normal(size=basis.n_fields) * 0.15  # registration_speed's instance
+    sv, sf = body_scan(basis, truth)
+    true_v = basis.template + np.tensordot(truth, basis.fields, 1)
+    rows = []
+    for name, changes in PAPER_FACTORS:
+        res, wall, cpu = run(basis, sv, sf, changes)
+        err = evaluation.vertex_error(res.vertices, true_v)
+        rows.append([name, res.levels[-1]["kernel"], 1e3 * err["mean"], 1e3 * err["p95"], wall, cpu,
+                     "/".join(str(lv["iterations"]) for lv in res.levels)])
+        log("  ", *(f"{x:.3g}" if isinstance(x, float) else x for x in rows[-1]), flush=True)
+    return (f"Scan normal spread {problem.normal_spread(sv, sf):.3f}.\n\n"
+            + markdown_table(["paper-scale instance", "finest kernel", "mean mm", "p95 mm", "wall s", "CPU s",
+                              "iterations"], rows))
+
+
+def human_rows(n, truths, log=print):
+    from bench.landmarks_masks import held_out_frames
+
+    basis = load_basis("human")
+    rows = []
+    for key, truth in held_out_frames(truths, n, motion="lunge").items():
+        for noise in HUMAN_NOISE:
+            seed = 500 + sum(map(ord, key))
+            sv, sf, info = simulate_scan(truth, basis.faces, seed=seed, noise=noise, **HUMAN_SCAN)
+            unit = 1e3 / info["scale"]  # scan units -> mm of the true body
+            true_v = apply_similarity(info, truth)
+            for name, changes in BODY_FACTORS:
+                res, wall, cpu = run(basis, sv, sf, changes)
+                err = evaluation.vertex_error(res.vertices, true_v)
+                rows.append([key, f"{1e3 * noise:g} mm", f"{res.normal_spread:.3f}", name, res.levels[-1]["kernel"],
+                             unit * err["mean"], unit * err["p95"], wall, cpu])
+                log("  ", *(f"{x:.3g}" if isinstance(x, float) else x for x in rows[-1]), flush=True)
+    return markdown_table(["held-out scan", "noise", "normal spread", "registration", "finest kernel", "mean mm",
+                           "p95 mm", "wall s", "CPU s"], rows)
+
+
+def real_rows(n, log=print):
+    import bpy  # noqa: F401  (surface_distances uses bpy's mathutils)
+    import trimesh
+
+    from bench.human_accuracy import DFAUST, surface_distances
+    from bareesa.synthetic import random_rotation
+    from bareesa.transforms import Similarity
+
+    if not DFAUST.exists():
+        log(f"(no {DFAUST}: the real-body rows are skipped)")
+        return ""
+    mesh = trimesh.load(DFAUST, process=False)
+    body_v, body_f = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+    basis = load_basis("human")
+    rng = np.random.default_rng(0)
+    rows = []
+    for k in range(n):
+        sim = Similarity(rotation=random_rotation(100 + k), scale=1.0, translation=rng.normal(size=3))
+        for name, changes in BODY_FACTORS:
+            res, wall, cpu = run(basis, sim.apply(body_v), body_f, changes)
+            d_rb, d_br, haus = surface_distances(sim.invert(res.vertices), basis.faces, body_v, body_f)
+            rows.append([f"orientation {k + 1}", name, res.levels[-1]["kernel"], 1e3 * d_rb, 1e3 * d_br, 1e3 * haus,
+                         wall, cpu])
+            log("  ", *(f"{x:.3g}" if isinstance(x, float) else x for x in rows[-1]), flush=True)
+    return markdown_table(["DFAUST template", "registration", "finest kernel", "registered->body mm",
+                           "body->registered mm", "Hausdorff mm", "wall s", "CPU s"], rows)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--parts", nargs="*", default=["paper", "human", "real"], choices=["paper", "human", "real"])
+    parser.add_argument("--name", default="registration_accuracy", help="output file bench/out/NAME.md")
+    parser.add_argument("--scans", type=int, default=2, help="held-out people (each scanned at two noise levels)")
+    parser.add_argument("--real", type=int, default=2, help="orientations of the real body")
+    parser.add_argument("--truths", type=lambda p: __import__("pathlib").Path(p),
+                        default=OUT / "held_out_wave_frames.npz", help="cache of the held-out Anny frames")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    sections = {"paper": ("Paper-scale instance", paper_rows),
+                "human": ("Held-out human scans (lunge)", lambda: human_rows(args.scans, args.truths)),
+                "real": ("Real body (DFAUST template, human basis)", lambda: real_rows(args.real))}
+    text = []
+    for part in args.parts:
+        title, rows = sections[part]
+        print(f"## {title}", flush=True)
+        text.append(f"## {title}\n\n{rows()}")
+    report(args.name, "\n\n".join(text))
+
+
+if __name__ == "__main__":
+    main()
