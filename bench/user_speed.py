@@ -8,7 +8,8 @@ and CPU seconds (CPU over all threads of this process) and an accuracy or outcom
 ``--paper`` adds the paper-scale problem of ``bench.registration_speed`` (6,890 vertices, P = 170,
 55k-face scan) as a second table.
 
-    python -m bench.user_speed [--basis humanoid] [--paper] [--device cpu] [--threads 2] [--skip ...]
+    python -m bench.user_speed [--basis humanoid] [--paper] [--bodies SEED ...] [--device cpu] [--threads 2]
+                               [--skip ...]
 """
 
 import argparse
@@ -19,6 +20,7 @@ import torch
 
 from bench.common import markdown_table, report
 from bareesa import basis_io, evaluation, workflows
+from bareesa.errors import BareEsaError
 from bareesa.scan_simulator import apply_similarity, simulate_scan
 
 TASKS = ("registration", "interpolation", "matching", "extrapolation", "random")
@@ -46,36 +48,68 @@ def error_text(basis, got, truth, scale):
     return f"vertex error mean {value} ({100 * err / size:.2f} % of size)"
 
 
+def timed_row(task, fn, outcome):
+    """A table row [task, wall, CPU, outcome(result)], or the one-line error of a failed solve as its
+    outcome (a failure is a result: the table goes on)."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    try:
+        text = outcome(fn())
+    except BareEsaError as err:
+        text = f"**failed**: {err}"
+    row = [task, time.perf_counter() - t0, time.process_time() - c0, text]
+    print("  ", *row, flush=True)
+    return row
+
+
 def user_rows(basis, options, skip, resolution):
     """The table of what a user runs on ``basis``: rows [task, wall, CPU, outcome]."""
     codes = workflows.random_bodies(basis, 2, 7, options).codes
     rows = []
     if "registration" not in skip:
         scan, truth = scan_of(basis, codes[0], 11, resolution)
-        found, wall, cpu = timed(lambda: workflows.code_of(basis, scan, options))
-        reg = found.registration
-        rows.append([f"registration, {len(scan.faces)}-face scan", wall, cpu,
-                     error_text(basis, reg.vertices, truth, 1.0) + f"; residual {reg.residual:.3g}"])
+        rows.append(timed_row(f"registration, {len(scan.faces)}-face scan",
+                              lambda: workflows.code_of(basis, scan, options).registration,
+                              lambda reg: "; ".join([error_text(basis, reg.vertices, truth, 1.0),
+                                                     f"residual {reg.residual:.3g}"])))
     if "interpolation" not in skip:
         ends = [workflows.KnownCode(c) for c in codes]
-        found, wall, cpu = timed(lambda: workflows.path_between(basis, *ends, 24, options))
-        rows.append(["interpolation, known codes, T = 24", wall, cpu, f"distance {found.distance:.4g}"])
+        rows.append(timed_row("interpolation, known codes, T = 24",
+                              lambda: workflows.path_between(basis, *ends, 24, options),
+                              lambda found: f"distance {found.distance:.4g}"))
     if "matching" not in skip:
         (scan_a, truth_a), (scan_b, truth_b) = scan_of(basis, codes[0], 12, resolution), \
             scan_of(basis, codes[1], 13, resolution)
-        found, wall, cpu = timed(lambda: workflows.geodesic_between(basis, scan_a, scan_b, options))
-        ends = "; ".join(error_text(basis, e.registration.vertices, t, 1.0)
-                         for e, t in zip(found.ends, (truth_a, truth_b)))
-        rows.append(["symmetric matching of two raw scans", wall, cpu, ends])
+        rows.append(timed_row("symmetric matching of two raw scans",
+                              lambda: workflows.geodesic_between(basis, scan_a, scan_b, options),
+                              lambda found: "; ".join(error_text(basis, e.registration.vertices, t, 1.0)
+                                                      for e, t in zip(found.ends, (truth_a, truth_b)))))
     if "extrapolation" not in skip:
         a, b = workflows.KnownCode(codes[0]), workflows.KnownCode(codes[0] + 0.1 * (codes[1] - codes[0]))
-        found, wall, cpu = timed(lambda: workflows.extrapolate(basis, a, b, 10, options))
-        rep = found.shooting
-        rows.append(["extrapolation, 10 frames", wall, cpu,
-                     f"{rep.refinements} refinements (steps per frame up to {max(rep.substeps)})"])
+        rows.append(timed_row("extrapolation, 10 frames",
+                              lambda: workflows.extrapolate(basis, a, b, 10, options).shooting,
+                              lambda rep: f"{rep.refinements} refinements (steps per frame up to {max(rep.substeps)})"))
     if "random" not in skip:
-        bodies, wall, cpu = timed(lambda: workflows.random_bodies(basis, 20, 3, options))
-        rows.append(["20 random bodies", wall, cpu, f"{bodies.replaced} draws replaced"])
+        rows.append(timed_row("20 random bodies", lambda: workflows.random_bodies(basis, 20, 3, options),
+                              lambda bodies: f"{bodies.replaced} draws replaced"))
+    return rows
+
+
+def body_rows(basis, options, seeds, resolution):
+    """Registration of one simulated scan (scale +-10 %) of a random body per seed (the first body of
+    ``random_bodies(basis, 2, seed)``; scan seed 100 + seed): rows [seed, faces, mean mm, p95 mm,
+    wall, CPU, iterations per level]."""
+    rows = []
+    for seed in seeds:
+        code = workflows.random_bodies(basis, 2, seed, options).codes[0]
+        truth = basis.template + np.tensordot(code, basis.fields, axes=1)
+        verts, faces, info = simulate_scan(truth, basis.faces, seed=100 + seed, resolution=resolution, scale=0.1)
+        found, wall, cpu = timed(lambda: workflows.code_of(basis, workflows.Scan(verts, faces), options))
+        reg = found.registration
+        err = evaluation.vertex_error(reg.vertices, apply_similarity(info, truth))
+        unit = 1000.0 if basis.units == "m" else 1.0
+        rows.append([seed, len(faces), unit * err["mean"], unit * err["p95"], wall, cpu,
+                     "/".join(str(lv["iterations"]) for lv in reg.levels)])
+        print("  ", *rows[-1], flush=True)
     return rows
 
 
@@ -106,6 +140,8 @@ def main():
     parser.add_argument("--resolution", type=float, default=0.009,
                         help="scan remeshing pitch (share of the size; 0.009 gives ~50k faces on the humanoid)")
     parser.add_argument("--skip", nargs="*", default=(), choices=TASKS)
+    parser.add_argument("--bodies", type=int, nargs="*", default=(), metavar="SEED",
+                        help="also register a simulated scan of the random body of each seed (accuracy over many)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     options = workflows.Options(device=args.device)
@@ -113,6 +149,12 @@ def main():
     header = ["task", "wall s", "CPU s", "accuracy / outcome"]
     text = (f"# What a user runs: basis '{basis.name}', device {args.device}, torch threads {args.threads}\n\n"
             + markdown_table(header, user_rows(basis, options, set(args.skip), args.resolution), "{:.1f}"))
+    if args.bodies:
+        unit = "mm" if basis.units == "m" else basis.units or "units"
+        text += (f"\n\n## Random bodies, one simulated scan each\n\n"
+                 + markdown_table(["seed", "scan faces", f"mean {unit}", f"p95 {unit}", "wall s", "CPU s",
+                                   "iterations per level"], body_rows(basis, options, args.bodies, args.resolution),
+                                  "{:.2f}"))
     if args.paper:
         text += "\n\n## Paper scale\n\n" + markdown_table(header, paper_rows(options, args.resolution), "{:.1f}")
     report(f"user_speed_{basis.name}_{args.device}", text)

@@ -334,6 +334,30 @@ def test_pose_stage_starts_the_level_from_the_candidate_that_fits(space, monkeyp
     assert np.linalg.norm(transform.apply(space["scan"]) - space["scan"], axis=1).max() < 0.05
 
 
+def test_pose_stage_realigns_only_the_best_centroid_matched_candidates_and_still_finds_the_fit(space, monkeypatch):
+    # 10 far candidates and one near alpha*: the cheap score (centroid matched, no iterations) must keep
+    # the near one among the POSE_REALIGN that get the full re-alignment
+    monkeypatch.setattr(poses, "POSE_ITER", 2)
+    monkeypatch.setattr(poses, "POSE_REALIGN", 2)
+    basis, alpha = space["basis"], space["alpha"]
+    rng = np.random.default_rng(5)
+    candidates = np.concatenate([2 * rng.normal(size=(10, 6)), [alpha + 0.05 * rng.normal(size=6)]])
+    problem = _problem(space)
+    calls = []
+    realign = problem.realign
+
+    def spy(level, codes, transform, max_iter=15):
+        calls.append((len(codes), max_iter))
+        return realign(level, codes, transform, max_iter)
+
+    problem.realign = spy
+    path, transform, _ = poses.try_poses(problem, basis, basis.schedule[1], basis.schedule[-1], np.zeros((2, 6)),
+                                         Similarity(), candidates, (0.0, 1.0), "test")
+    assert calls[0] == (11, 0)  # every candidate scored once, centroid matched
+    assert [n for n, it in calls if it > 0] == [3]  # the current code and the 2 best re-aligned
+    assert np.linalg.norm(path[-1] - alpha) < 0.2 * np.linalg.norm(alpha)
+
+
 def test_pose_candidates_auto_without_prototypes_changes_nothing_and_bad_ones_are_refused(space, aligned):
     basis = space["basis"]
     assert "pose_prototypes" not in basis.extras

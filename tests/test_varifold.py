@@ -310,6 +310,16 @@ def test_binned_measure_loss_gradient_matches_finite_differences():
     assert torch.autograd.gradcheck(loss, (x, f), eps=1e-6, atol=1e-7, rtol=1e-5)
 
 
+def test_cell_groups_label_each_cell_once_in_lexicographic_order():
+    rng = np.random.default_rng(3)
+    points = torch.tensor(rng.normal(size=(2000, 3)) * [1.0, 5.0, 0.2] + 40.0, dtype=DT)
+    groups, n = V.measure.cell_groups(points, 0.25)
+    cells = torch.floor(points / 0.25).long()
+    expected_cells, expected = torch.unique(cells, dim=0, return_inverse=True)
+    assert n == len(expected_cells) and torch.equal(groups, expected)
+    assert V.measure.cell_groups(points[:0], 0.25)[1] == 0
+
+
 @pytest.mark.parametrize("kernel", ["binet", "linear", "constant"])
 def test_moved_binned_measure_is_the_binned_measure_of_the_moved_mesh(kernel):
     v, f = mesh(3, 0)

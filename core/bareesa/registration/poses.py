@@ -24,6 +24,9 @@ from ..errors import InputError
 #: the level's own weight.
 POSE_FINALISTS = 2
 POSE_TIE = 2.0
+#: ... only the POSE_REALIGN candidates that score best with their centroid matched to the scan's (no
+#: iterations) are re-aligned: re-aligning each of the human basis' 32 prototypes cost ~1.5 s of CPU
+POSE_REALIGN = 6
 POSE_ITER = 40
 POSE_WEIGHT_GAIN = 10.0
 
@@ -59,13 +62,17 @@ def try_poses(problem, basis, level, judge, path, transform, candidates, progres
     ``kernel``: -> (path, transform, share of ``progress`` used). The path returned is the best short
     solve, or ``path`` when no candidate is close.
 
-    Every start (the current end code and each candidate) is first re-aligned to the scan on its own
-    (``CoarseVarifold`` at the level's sigma, from the current alignment): the pre-alignment matched
-    the scan's centroid and RMS radius to the template's, which a raised arm shifts by several cm.
+    Every start (the current end code and the POSE_REALIGN candidates that score best with their
+    centroid matched to the scan's) is first re-aligned to the scan on its own (``CoarseVarifold`` at
+    the level's sigma, from the current alignment): the pre-alignment matched the scan's centroid and
+    RMS radius to the template's, which a raised arm shifts by several cm.
     """
     code = path[-1]
     level = replace(level, weight=level.weight * POSE_WEIGHT_GAIN)
     starts = pose_starts(basis, candidates, code)
+    quick = np.array([score for _, score in problem.realign(level, starts, transform, max_iter=0)])
+    keep = np.argsort(quick)[:POSE_REALIGN]
+    starts = starts[keep]
     aligned, scores = zip(*problem.realign(level, [code, *starts], transform))
     scores = np.array(scores)
     pick = [int(j) for j in np.argsort(scores[1:])[:POSE_FINALISTS] if scores[1 + j] <= POSE_TIE * scores[0]]

@@ -180,7 +180,6 @@ class RegistrationProblem:
         # metric at the template, the end code by an estimate of the level's Hessian
         self.gram = basis.template_metric(metric)
         self.whiten = whitening(self.gram)
-        self.normal_gram = _normal_gram(basis.template, basis.faces, basis.fields)
         self.radius = math.sqrt(((basis.template - self.center) ** 2).sum(-1).mean())
         self.scan, self.scan_faces_np = sv, sf
         self.scan_faces = torch.as_tensor(sf, dtype=torch.long, device=device)
@@ -194,26 +193,36 @@ class RegistrationProblem:
         self.n_extra = 7 if refine_transform else 0
         self.dtype, self.device, self.monitor = dtype, device, monitor
         self.scale, self.n_fields = basis.scale, basis.n_fields
-        self.fields_np = basis.fields
+        self.template_np, self.faces_np, self.fields_np = basis.template, basis.faces, basis.fields
 
-    def realign(self, level, codes, transform):
+    def realign(self, level, codes, transform, max_iter=POSE_ALIGN_ITER):
         """The alignment refined for each surface F(code) at ``level``'s sigma (binned binet varifold,
-        rotation, translation and a bounded log-scale about the template's centre): codes (K, P) ->
-        [(Similarity, weight * Gamma + energy of the straight path 0 -> code)], Gamma on the coarse cells."""
+        rotation, translation and a bounded log-scale about the template's centre), starting from the
+        translation that matches F(code)'s area centroid with the scan's (a raised arm moves the centroid
+        by several cm): codes (K, P) -> [(Similarity, weight * Gamma + energy of the straight path
+        0 -> code)], Gamma on the coarse cells. max_iter 0 scores the centroid-matched starts alone."""
         sigma = level.sigma * self.scale
         cell = PREALIGN_CELL * sigma
-        weights = None if self.scan_weights is None else self.scan_weights.detach()
-        scan = coarse_measure(transform.apply(self.scan) - self.center, self.scan_faces, weights, cell)
+        weights = None if self.scan_weights is None else self.scan_weights.detach().cpu().numpy()
+        moved = transform.apply(self.scan)
+        scan_center = surface_moments(moved, self.scan_faces_np, weights)[1]
+        scan = coarse_measure(moved - self.center, self.scan_faces, weights, cell)
         eye = torch.eye(3, dtype=torch.float64)
         out = []
         for code in codes:
             self.monitor.check()
             with torch.no_grad():
                 verts = decode(self.template, self.fields, torch.as_tensor(code, dtype=self.dtype, device=self.device))
-            verts = verts.detach().cpu().numpy().astype(np.float64) - self.center
-            coarse = CoarseVarifold(scan, coarse_measure(verts, self.faces, None, cell), sigma)
-            x, gamma, _ = minimize_lbfgs(lambda p: coarse(torch.cat([p[:6], log_scale(p[6:])]), eye), np.zeros(7),
-                                         max_iter=POSE_ALIGN_ITER, gtol=1e-9, ftol=1e-10)
+            verts = verts.detach().cpu().numpy().astype(np.float64)
+            x0 = np.zeros(7)
+            x0[3:6] = scan_center - surface_moments(verts, self.faces_np)[1]
+            coarse = CoarseVarifold(scan, coarse_measure(verts - self.center, self.faces, None, cell), sigma)
+            fun = lambda p: coarse(torch.cat([p[:6], log_scale(p[6:])]), eye)  # noqa: E731
+            if max_iter:
+                x, gamma, _ = minimize_lbfgs(fun, x0, max_iter=max_iter, gtol=1e-9, ftol=1e-10)
+            else:
+                with torch.no_grad():
+                    x, gamma = x0, float(fun(torch.from_numpy(x0)))
             # F(code) moved by S: x -> e^l R (x - c) + tau + c; the scan moves by the inverse instead
             scale = math.exp(float(log_scale(torch.as_tensor(x[6]))))
             rot = axis_angle_rotation(x[:3])
@@ -338,8 +347,12 @@ class RegistrationProblem:
             return level.weight * fit + energy
 
         # the varifold of a surface offset by d along its normals is ~ 2 pi int d^2 (any sigma), so
-        # weight * Gamma has Hessian ~ 4 pi weight N in the code (N = normal_gram) next to G-bar
-        whiten_end = whitening(self.gram + 4 * math.pi * level.weight * self.normal_gram)
+        # weight * Gamma has Hessian ~ 4 pi weight N in the code (N = ``_normal_gram``) next to G-bar;
+        # N is taken at the level's start F(path[-1]), not at the template: a body in a pose the pose
+        # stage found has its limbs' normals elsewhere (a random body's finest level: 97 -> 62 iterations)
+        start = self.template_np + np.tensordot(path[-1], self.fields_np, axes=1)
+        normal = _normal_gram(start, self.faces_np, self.fields_np)
+        whiten_end = whitening(self.gram + 4 * math.pi * level.weight * normal)
         variables = PathVariables(steps, whiten_end, self.whiten)
         # similarity variables scaled so that a unit step moves the surface about as much as a
         # unit step of the (whitened) end code: a well-conditioned joint problem

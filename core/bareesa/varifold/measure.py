@@ -42,8 +42,18 @@ def varifold_measure(verts, faces, weights=None):
 
 def cell_groups(points, cell):
     """Index of the cubic cell (of size ``cell``) of each point: (F, 3) -> groups (F,) int64, number of cells."""
-    _, groups = torch.unique(torch.floor(points.detach() / cell).long(), dim=0, return_inverse=True)
-    return groups, int(groups.max()) + 1 if groups.numel() else 0
+    ijk = torch.floor(points.detach() / cell).long()
+    if not ijk.numel():
+        return ijk.new_zeros(0), 0
+    ijk = ijk - ijk.min(0).values
+    dims = [int(d) + 1 for d in ijk.max(0).values]
+    if dims[0] * dims[1] * dims[2] < 2 ** 62:  # one integer key per cell, ordered like (i, j, k): a 1-D
+        #                                         unique is ~25x faster than torch.unique(dim=0)
+        key = ijk[:, 2] + dims[2] * (ijk[:, 1] + dims[1] * ijk[:, 0])
+        _, groups = torch.unique(key, return_inverse=True)
+    else:
+        _, groups = torch.unique(ijk, dim=0, return_inverse=True)
+    return groups, int(groups.max()) + 1
 
 
 def face_features(normals, weights, kernel):
