@@ -181,7 +181,7 @@ class RegistrationProblem:
         self.gram = basis.template_metric(metric)
         self.whiten = whitening(self.gram)
         self.radius = math.sqrt(((basis.template - self.center) ** 2).sum(-1).mean())
-        self.scan, self.scan_faces_np = sv, sf
+        self.scan, self.scan_faces_np, self.scan_weights_np = sv, sf, face_w
         self.scan_faces = torch.as_tensor(sf, dtype=torch.long, device=device)
         self.scan_weights = None if face_w is None else torch.as_tensor(face_w, dtype=dtype, device=device)
         self.marks = marks
@@ -203,10 +203,9 @@ class RegistrationProblem:
         0 -> code)], Gamma on the coarse cells. max_iter 0 scores the centroid-matched starts alone."""
         sigma = level.sigma * self.scale
         cell = PREALIGN_CELL * sigma
-        weights = None if self.scan_weights is None else self.scan_weights.detach().cpu().numpy()
         moved = transform.apply(self.scan)
-        scan_center = surface_moments(moved, self.scan_faces_np, weights)[1]
-        scan = coarse_measure(moved - self.center, self.scan_faces, weights, cell)
+        scan_center = surface_moments(moved, self.scan_faces_np, self.scan_weights_np)[1]
+        scan = coarse_measure(moved - self.center, self.scan_faces, self.scan_weights_np, cell)
         eye = torch.eye(3, dtype=torch.float64)
         out = []
         for code in codes:
@@ -272,9 +271,8 @@ class RegistrationProblem:
         code (P,), transform scan -> template -> (faces (G, 3) tensor, number turned)."""
         with torch.no_grad():
             fit = decode(self.template, self.fields, torch.as_tensor(code, dtype=self.dtype, device=self.device))
-        weights = None if self.scan_weights is None else self.scan_weights.cpu().numpy()
-        faces, turned = orient_like(transform.apply(self.scan), self.scan_faces_np, fit.cpu().numpy(),
-                                    self.faces.cpu().numpy(), weights)
+        faces, turned = orient_like(transform.apply(self.scan), self.scan_faces_np, fit.cpu().numpy(), self.faces_np,
+                                    self.scan_weights_np)
         return torch.as_tensor(faces, dtype=torch.long, device=self.device), turned
 
     def level_loss(self, kernel, sigma, target, scan_faces, code):
