@@ -5,7 +5,7 @@ import bpy
 from . import jobs
 from .convert import PROP_BASIS, PROP_BASIS_NAME, PROP_CHAMFER, PROP_POOR_FIT, PROP_RANGE, PROP_VARIFOLD
 from .operators.common import TRAINING_STDS
-from .preferences import dependency_status
+from .preferences import OPTIONAL_MODULES, dependency_status
 from .properties import OTHER_BASIS
 
 
@@ -40,7 +40,7 @@ class BAREESA_PT_main(_Section, bpy.types.Panel):
     def draw(self, context):
         layout = split(self.layout)
         status = dependency_status()
-        missing = [name for name, ok in status.items() if not ok and name != "pykeops"]
+        missing = [name for name, ok in status.items() if not ok and name not in OPTIONAL_MODULES]
         if missing:
             col = layout.column(align=True)
             col.label(text="Missing: " + ", ".join(missing), icon="ERROR")

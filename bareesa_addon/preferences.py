@@ -16,10 +16,12 @@ import bpy
 from bpy.props import EnumProperty
 
 PACKAGE = __package__ or "bareesa_addon"
-SOLVER_MODULES = ("torch", "scipy", "numpy", "trimesh", "pykeops", "sklearn")
+SOLVER_MODULES = ("torch", "scipy", "numpy", "trimesh", "pykeops", "sklearn", "distributed")
+#: Modules the solver runs without (pykeops: faster sums; distributed: scans in parallel processes).
+OPTIONAL_MODULES = ("pykeops", "distributed")
 #: pip requirement of each module the solver imports (numpy comes with Blender).
 PIP_NAMES = {"torch": "torch", "scipy": "scipy", "trimesh": "trimesh", "sklearn": "scikit-learn",
-             "pykeops": "pykeops"}
+             "pykeops": "pykeops", "distributed": "distributed"}
 TORCH_CPU_INDEX = "https://download.pytorch.org/whl/cpu"
 
 
@@ -94,6 +96,19 @@ def solver_device(context=None):
     prefs = preferences(context)
     device = prefs.device if prefs is not None else "cpu"
     return device if device == "cpu" or cuda_available() else "cpu"
+
+
+def solver_processes(n_scans, context=None, asked=-1):
+    """How many worker processes register n_scans scans: ``asked`` when >= 0 (an operator's own setting),
+    else the preference (0: one per CPU core); at most one per scan. 1 means in Blender's own process
+    (also when the add-on was registered without being enabled, or Dask's distributed is missing)."""
+    if asked < 0:
+        prefs = preferences(context)
+        asked = prefs.processes if prefs is not None else 1
+    n = min(asked or os.cpu_count() or 1, n_scans)
+    if n > 1 and importlib.util.find_spec("distributed") is None:
+        return 1
+    return max(n, 1)
 
 
 def pip_commands(target, modules, cuda=False):
@@ -196,6 +211,10 @@ class BareEsaPreferences(bpy.types.AddonPreferences):
 
     device: EnumProperty(name="Device", items=_device_items,
                          description="Where the solver runs (CUDA appears when torch sees an NVIDIA GPU)")
+    processes: bpy.props.IntProperty(
+        name="Worker Processes", default=0, min=0, max=256,
+        description="Register several selected scans in parallel worker processes (Dask's distributed "
+                    "scheduler, one solver thread each); 0: one per CPU core, 1: one scan at a time in Blender")
     cuda_wheels: bpy.props.BoolProperty(name="Install CUDA build of torch", default=False,
                                         description="Install the (large) CUDA build of torch instead of the CPU one")
 
@@ -212,6 +231,10 @@ class BareEsaPreferences(bpy.types.AddonPreferences):
         row.prop(self, "cuda_wheels")
         box.label(text=f"Installed into: {dependencies_dir()}")
         layout.prop(self, "device")
+        row = layout.row()
+        row.prop(self, "processes")
+        if importlib.util.find_spec("distributed") is None:
+            row.label(text="needs Dask's distributed (Install dependencies)", icon="INFO")
 
 
 CLASSES = (BAREESA_OT_install_dependencies, BareEsaPreferences)

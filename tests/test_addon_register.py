@@ -180,3 +180,32 @@ def test_poor_fit_is_stored_on_the_object_and_reported(scene, tiny, monkeypatch)
     select(bpy.data.objects["scan"])
     assert bpy.ops.bareesa.register_scan() == {"FINISHED"}
     assert not bpy.data.objects["scan_registered.001"]["bareesa_poor_fit"]
+
+
+def test_several_scans_register_in_worker_processes_like_in_blender(scene, tiny):
+    """Register Scans with processes=2 runs the scans on a Dask LocalCluster: the same objects as one at a
+    time in Blender's process; a scan that fails there is reported and the others are still made."""
+    pytest.importorskip("distributed")
+    _, _, surface = tiny
+    moved = [add_mesh(f"scan{k}", *code_surface(surface, a), location=(3.0 * k, 0.0, 0.0))
+             for k, a in enumerate((ALPHA, -0.5 * ALPHA))]
+    scene.bareesa.prealign = False
+    select(*moved)
+    assert bpy.ops.bareesa.register_scan(processes=1) == {"FINISHED"}
+    serial = {k: key_values(bpy.data.objects[f"scan{k}_registered"], NAMES) for k in range(2)}
+    serial_place = {k: np.array(bpy.data.objects[f"scan{k}_registered"].matrix_world) for k in range(2)}
+    for k in range(2):
+        bpy.data.objects.remove(bpy.data.objects[f"scan{k}_registered"])
+    select(*moved)
+    assert bpy.ops.bareesa.register_scan(processes=2) == {"FINISHED"}
+    for k in range(2):
+        obj = bpy.data.objects[f"scan{k}_registered"]
+        np.testing.assert_allclose(key_values(obj, NAMES), serial[k], atol=1e-5)
+        np.testing.assert_allclose(np.array(obj.matrix_world), serial_place[k], atol=1e-5)
+    # a one-triangle "scan" beside a real one: refused in its process, the other registered
+    tri = add_mesh("tri", np.array([[0.0, 0, 0], [1e-3, 0, 0], [0, 1e-3, 0]]), np.array([[0, 1, 2]]))
+    select(moved[0], tri)
+    before = set(bpy.data.objects.keys())
+    assert bpy.ops.bareesa.register_scan(processes=2) == {"FINISHED"}
+    made = set(bpy.data.objects.keys()) - before
+    assert len(made) == 1 and not any(name.startswith("tri") for name in made)

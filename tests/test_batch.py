@@ -240,3 +240,99 @@ def test_cli_register_batch_errors_are_one_line(tiny, scans, tmp_path, capsys, m
     assert main(["register-batch", str(scans[0]), "--basis", str(tiny[0]), "-o", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "pip install 'bareesa[batch]'" in err and len(err.strip().splitlines()) == 1
+
+
+# --------------------------------------------------------------- scans in memory, local processes
+
+
+def _scan_inputs(scans, broken=None):
+    from bareesa.workflows import Scan
+
+    out = [Scan(*load_mesh(s)) for s in scans]
+    if broken is not None:  # a one-triangle "scan": refused up front
+        out[broken] = Scan(np.array([[0.0, 0, 0], [1e-3, 0, 0], [0, 1e-3, 0]]), np.array([[0, 1, 2]]))
+    return out
+
+
+def test_scans_in_memory_register_in_processes_like_in_this_one_with_one_progress_bar(tiny, scans):
+    from bareesa.workflows import Options, codes_of
+
+    inputs, options = _scan_inputs(scans[:2], broken=None), Options(schedule=TINY_SCHEDULE)
+    events = []
+    results = batch.register_scans(tiny[0], inputs, options, workers=2, callback=events.append, progress_every=0)
+    serial = codes_of(load_basis(tiny[0]), inputs, options)
+    for r, s in zip(results, serial):
+        assert isinstance(r, registration.RegistrationResult)
+        np.testing.assert_allclose(r.code, s.code, atol=1e-8)
+        np.testing.assert_allclose(r.vertices, s.registration.vertices, atol=1e-8)
+        np.testing.assert_allclose(r.transform.rotation, s.registration.transform.rotation, atol=1e-8)
+        assert r.transform.scale == pytest.approx(s.registration.transform.scale)
+    fractions = [e.fraction for e in events]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0 and len(set(fractions)) > 2
+    previews = [e.preview for e in events if e.preview is not None]
+    assert {p["item"] for p in previews} <= {0, 1} and previews, "the workers' previews reach the client"
+    assert all(p["code"].shape == (4,) and hasattr(p["transform"], "apply") for p in previews)
+
+
+def test_a_scan_that_fails_in_a_process_is_returned_as_its_error_and_the_others_register(tiny, scans):
+    from bareesa.errors import InputError
+    from bareesa.workflows import Options
+
+    results = batch.register_scans(tiny[0], _scan_inputs(scans[:2], broken=1), Options(schedule=TINY_SCHEDULE),
+                                   workers=2)
+    assert isinstance(results[0], registration.RegistrationResult)
+    assert isinstance(results[1], InputError) and str(results[1]).startswith("scan 2: ")
+
+
+def test_cancelling_scans_in_processes_stops_the_workers_and_raises(tiny, scans):
+    from bareesa.workflows import Options
+
+    token = CancelToken()
+    seen = []
+
+    def callback(event):
+        seen.append(event)
+        if len(seen) == 3:
+            token.cancel()
+
+    start = time.monotonic()
+    with pytest.raises(SolveCancelled):
+        batch.register_scans(tiny[0], _scan_inputs(scans), Options(schedule=(Level(0.15, 1e5, 2, 10_000),)),
+                             workers=2, callback=callback, cancel=token)
+    assert time.monotonic() - start < 120
+
+
+def test_a_vendored_copy_of_the_solver_registers_scans_in_processes(tiny, scans, tmp_path):
+    """The Blender extension vendors the solver as <extension>/bareesa (imported as <package>.bareesa): its
+    workers import it as ``bareesa`` from that folder, not from the installed package."""
+    import shutil
+    import subprocess
+
+    import bareesa
+
+    ext = tmp_path / "my_extension"
+    shutil.copytree(os.path.dirname(bareesa.__file__), ext / "bareesa",
+                    ignore=shutil.ignore_patterns("__pycache__", "bases"))
+    (ext / "__init__.py").write_text("")
+    with open(ext / "bareesa" / "batch.py", "a") as f:  # a mark only the vendored copy leaves in its results
+        f.write("\n_unmarked = register_array\n\n\ndef register_array(*args, **kwargs):\n"
+                "    return {**_unmarked(*args, **kwargs), 'levels': [{'vendored': True}]}\n")
+    script = f"""
+import sys, numpy as np
+sys.path.insert(0, {str(tmp_path)!r})
+import my_extension.bareesa.batch as vb
+from my_extension.bareesa.mesh import load_mesh
+from my_extension.bareesa.workflows import Scan, Options
+from my_extension.bareesa.latent import Level
+import distributed
+
+res = vb.register_scans({str(tiny[0])!r}, [Scan(*load_mesh({str(scans[0])!r}))],
+                        Options(schedule=(Level(0.25, 1e3, 1, 5),)), workers=1)
+assert type(res[0]).__module__ == "my_extension.bareesa.registration.multiscale", type(res[0])
+assert res[0].levels == [{{"vendored": True}}], "the workers ran the installed solver, not the vendored one"
+print("code", np.round(res[0].code, 6).tolist())
+"""
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "PYTHONPATH": ""})
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert "code" in run.stdout

@@ -223,3 +223,17 @@ def test_shoot_reports_refinement_and_keeps_the_start():
     path, report = shooting.shoot(t, f, h, a0, 3 * a1, b.weights, steps=3, with_report=True)
     assert path.shape == (4, 4) and np.array_equal(path[0], a0) and np.isfinite(path).all()
     assert len(report.substeps) == 2 and report.refinements == int(np.log2(max(report.substeps)))
+
+
+def test_a_solved_step_whose_speed_changes_is_kept_at_the_finest_refinement_and_reported():
+    b, (t, f, h), a0, a1 = _curved_motion()
+    # a speed tolerance nothing meets: every frame is refined to the finest step, then kept there
+    path, report = shooting.extrapolate(t, f, h, a0, a1, b.weights, 2, speed_tol=1e-15, max_substeps=8,
+                                        with_report=True)
+    assert report.speed_relaxed == [1, 2] and report.substeps == [8, 8]
+    assert report.to_json()["speed_relaxed"] == [1, 2] and report.max_speed_change > 1e-15
+    reference = shooting.extrapolate(t, f, h, a0, a1, b.weights, 2, substeps=8, max_substeps=8)
+    verts, ref_verts = geodesics.decode_path(t, h, path), geodesics.decode_path(t, h, reference)
+    assert np.abs(verts - ref_verts).max() < 0.005 * np.ptp(ref_verts[0], axis=0).max()
+    # the default tolerance keeps nothing unchecked on the same motion
+    assert shooting.extrapolate(t, f, h, a0, a1, b.weights, 2, with_report=True)[1].speed_relaxed == []

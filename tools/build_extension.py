@@ -36,8 +36,10 @@ BLENDER_NUMPY = "1.26.4"
 #: The solver's runtime dependencies (pyproject.toml) pinned to releases that import beside numpy 1.26 on
 #: Python 3.11; pip adds what they need in turn (torch: typing_extensions, sympy, networkx, ...), since
 #: bundled wheels must be complete. Not numpy (Blender's), pykeops (optional, compiles at run time), bpy.
+#: Dask's distributed (the ``batch`` extra) is bundled too: Register Scans runs several scans in worker processes.
 WHEEL_REQUIREMENTS = ("torch==2.13.0", "scipy==1.17.1", "trimesh==5.2.0", "scikit-learn==1.9.1",
-                      "joblib==1.6.0", "threadpoolctl==3.8.0", "tqdm==4.70.1")
+                      "joblib==1.6.0", "threadpoolctl==3.8.0", "tqdm==4.70.1", "dask==2026.8.0",
+                      "distributed==2026.8.0")
 #: Runtime dependencies of pyproject.toml that are deliberately not bundled.
 NOT_BUNDLED = {"numpy", "pykeops"}
 #: Blender platform -> (pip --platform tag, local version label torch needs there).

@@ -142,10 +142,16 @@ class BAREESA_OT_extrapolate(SolveOperator, bpy.types.Operator):
         ends = (wf.KnownCode(alpha0), wf.KnownCode(alpha1))
 
         def solve(callback, cancel):
-            return wf.extrapolate(basis, *ends, n_new, options, anchor=anchor, callback=callback, cancel=cancel).path
+            return wf.extrapolate(basis, *ends, n_new, options, anchor=anchor, callback=callback, cancel=cancel)
 
-        def apply(context, path):
+        def apply(context, motion):
+            path = motion.path
             cv.check_code(path, "the extrapolated motion")
+            relaxed = motion.shooting.speed_relaxed if motion.shooting is not None else []
+            if relaxed:
+                self.report({"WARNING"}, f"the motion's speed varied at new frame{'s' * (len(relaxed) > 1)} "
+                                         f"{', '.join(map(str, relaxed))}: the body passes a creased, almost flat "
+                                         "joint there (kept at the finest time step)")
             if target_name is None:
                 obj = template_object(context, basis, ref, label, code=path[0], hint=path)
                 write_keys(obj, basis, frames, path)

@@ -1,10 +1,12 @@
 """Register Scans."""
 
 import bpy
-from bpy.props import StringProperty
+from bpy.props import IntProperty, StringProperty
 
 from .. import convert as cv
+from .. import solver
 from ..jobs import SolveOperator, Task
+from ..preferences import solver_processes, user_bases_dir
 from .common import (add_registered, check_codes, find_object, load_basis, refuse, scan_input, select_only,
                      selected_meshes, settings, solve_options, template_object, workflows, write_code)
 
@@ -20,6 +22,9 @@ class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
         return refuse(cls, None if selected_meshes(context) else "select one or more scan meshes to register")
 
     basis: StringProperty(name="Basis", default="", description="Bundled name or .npz path (empty: the panel's)")
+    processes: IntProperty(name="Processes", default=-1, min=-1, max=256,
+                           description="Worker processes for several scans (-1: the add-on preference, 0: one "
+                                       "per CPU core, 1: one scan at a time in Blender)")
 
     def prepare(self, context):
         selected = list(context.selected_objects)
@@ -33,9 +38,17 @@ class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
         inputs = [scan_input(context, o, basis) for o in scans]
         names = [o.name for o in scans]
         options = solve_options(context, basis)
+        processes = solver_processes(len(inputs), context, self.processes)
 
         def solve(callback, cancel):
-            return wf.codes_of(basis, inputs, options, callback, cancel)
+            if processes <= 1:
+                return wf.codes_of(basis, inputs, options, callback, cancel)
+            # several scans at once in worker processes (Dask), one progress bar; a scan that fails is
+            # reported and the others are still registered
+            basis_file = solver.load_basis(ref, user_bases_dir())[1]  # the workers load it by path
+            results = solver.module("batch").register_scans(basis_file, inputs, options, workers=processes,
+                                                            callback=callback, cancel=cancel)
+            return [r if isinstance(r, Exception) else wf.Code(r.code, registration=r) for r in results]
 
         shown = {}  # input index -> name of its preview object
 
@@ -65,10 +78,17 @@ class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
                         bpy.data.meshes.remove(mesh)
             shown.clear()
 
-        def apply(context, codes):
+        def apply(context, results):
+            failed = [(n, r) for n, r in zip(names, results) if isinstance(r, Exception)]
+            if len(failed) == len(results):
+                raise failed[0][1]
+            kept = [(n, r) for n, r in zip(names, results) if not isinstance(r, Exception)]
+            codes = [r for _, r in kept]
             check_codes(codes)
-            scan_objects = [find_object(n) for n in names]
+            scan_objects = [find_object(n) for n, _ in kept]
             made = [add_registered(context, basis, ref, scan, c.registration) for scan, c in zip(scan_objects, codes)]
+            for name, err in failed:
+                self.report({"WARNING"}, f"'{name}' was not registered: {str(err).removeprefix('scan ')}")
             select_only(context, made)
             poor = [o.name for o, c in zip(made, codes) if getattr(c.registration, "poor_fit", False)]
             if poor:

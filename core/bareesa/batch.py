@@ -16,11 +16,17 @@ run in parallel: a chunk's first frame is registered fully, each further frame s
 previous frame's code and alignment (the scan mapped by the previous transform, no pre-alignment,
 no pose candidates, the finest WARM_LEVELS levels of the schedule only). The seams between chunks
 are checked for jumps against the median frame-to-frame motion.
+``register_scans`` is the same on scans in memory (the add-on's *Register Scans* with several
+selected): a LocalCluster of single-threaded processes, one progress bar fed by the workers'
+events (with the live preview), cancellation that stops the processes, and the results returned,
+not written. The workers import the solver as ``bareesa`` from its own folder, so a copy vendored
+inside another package (the Blender extension) runs on them as well.
 Dask is an optional dependency (``pip install 'bareesa[batch]'``), imported only when a batch runs.
 """
 
 import csv
 import hashlib
+import importlib
 import json
 import math
 import os
@@ -33,6 +39,7 @@ import numpy as np
 
 from . import registration
 from .basis_io import resolve_basis_path
+from . import errors
 from .errors import BareEsaError, InputError, SolveCancelled
 from .evaluation import chamfer
 from .mesh import load_mesh, save_mesh, validate_mesh
@@ -425,3 +432,185 @@ def registered_meshes(source):
         raise InputError(f"{len(bad)} scan(s) of the batch in {summary.parent} are not registered (e.g. "
                          f"{bad[0]}): run register-batch on them again")
     return [summary.parent / r["mesh"] for r in sorted(rows, key=lambda r: int(r["index"]))]
+
+
+# ------------------------------------------------------------------- scans in memory, local processes
+
+#: Topic of the progress events a worker sends to the client (``Worker.log_event``).
+PROGRESS_TOPIC = "bareesa-progress"
+#: A worker sends at most one progress event this often (seconds), and the last one.
+PROGRESS_EVERY = 0.5
+#: How often the client looks at finished scans, progress and cancellation (seconds).
+POLL_EVERY = 0.2
+
+
+class _Module:
+    """Pickles as ``importlib.import_module(name)``."""
+
+    def __init__(self, name):
+        self.name = name
+
+    def __reduce__(self):
+        return importlib.import_module, (self.name,)
+
+
+class _SolverFunction:
+    """A function of this module that pickles as ``bareesa.batch.<name>`` whatever this module's own name:
+    the workers import the solver as ``bareesa`` (``_solver_preload``), also when the client runs a copy
+    vendored inside another package."""
+
+    def __init__(self, name):
+        self.name = name
+
+    def __call__(self, *args, **kwargs):
+        return globals()[self.name](*args, **kwargs)
+
+    def __reduce__(self):
+        return getattr, (_Module("bareesa.batch"), self.name)
+
+
+def _solver_preload():
+    """Dask preload texts that let a worker import this solver as ``bareesa``: none when it is installed
+    under that name, else its parent folder put first on the worker's sys.path."""
+    if __package__ == "bareesa":
+        return []
+    return [f"import sys\nsys.path.insert(0, {str(Path(__file__).resolve().parent.parent)!r})\n"]
+
+
+_WORKER_BASES = {}
+
+
+def _worker_basis(path):
+    """The basis file at path, loaded once per worker process (again when the file changes)."""
+    from .basis_io import load_basis
+
+    key = (str(path), os.stat(path).st_mtime_ns)
+    if key not in _WORKER_BASES:
+        _WORKER_BASES.clear()
+        _WORKER_BASES[key] = load_basis(path)
+    return _WORKER_BASES[key]
+
+
+def plain_options(options):
+    """``registration.register`` keyword arguments of a ``workflows.Options`` as plain values (no class of
+    this package, so that a worker importing the solver under another name reads them): -> dict."""
+    from dataclasses import asdict
+
+    from .h2_metric import H2Weights
+
+    weights = options.weights.as_tuple() if isinstance(options.weights, H2Weights) else options.weights
+    schedule = None if options.schedule is None else [asdict(lv) if not isinstance(lv, dict) else lv
+                                                      for lv in options.schedule]
+    return {"schedule": schedule, "prealign": bool(options.prealign), "metric": weights, "kernel": options.kernel,
+            "dtype": options.dtype, "device": options.device}
+
+
+def register_array(basis_path, scan, index, options, threads=1, progress_every=PROGRESS_EVERY):
+    """Register one scan held in memory (run on a worker): scan {"verts" (M, 3), "faces" (G, 3),
+    "face_weights" (G,) or None, "landmarks" or None}; index its place in the batch; options
+    ``plain_options``: -> ``RegistrationResult.to_state()``, or {"error": one line, "kind": error class}.
+    Sends progress to the client as ``PROGRESS_TOPIC`` events, at most one per ``progress_every`` seconds
+    (and the last), each with the newest preview."""
+    import torch
+
+    torch.set_num_threads(threads)
+    try:
+        from distributed import get_worker
+        worker = get_worker()
+    except (ImportError, ValueError):
+        worker = None
+    sent, newest = [-math.inf], [None]
+
+    def callback(event):
+        if event.preview is not None:
+            newest[0] = {"code": np.asarray(event.preview["code"], dtype=np.float64).tolist(),
+                         "transform": event.preview["transform"].to_dict()}
+        now = time.monotonic()
+        if worker is None or (now - sent[0] < progress_every and event.fraction < 1.0):
+            return
+        sent[0] = now
+        message = {"item": index, "fraction": float(event.fraction), "message": event.message}
+        if newest[0] is not None:
+            message["preview"], newest[0] = newest[0], None
+        worker.log_event(PROGRESS_TOPIC, message)
+
+    try:
+        res = registration.register(_worker_basis(basis_path), scan["verts"], scan["faces"],
+                                    scan_face_weights=scan.get("face_weights"), landmarks=scan.get("landmarks"),
+                                    callback=callback, **options)
+    except BareEsaError as err:
+        return {"error": str(err).splitlines()[0] if str(err) else type(err).__name__, "kind": type(err).__name__}
+    return res.to_state()
+
+
+def register_scans(basis, scans, options, *, workers=2, callback=None, cancel=None, progress_every=PROGRESS_EVERY):
+    """Register scans held in memory on a LocalCluster of ``workers`` single-threaded processes (at most one
+    per scan): -> list, in input order, of a ``RegistrationResult`` or, for a scan that failed, the
+    ``BareEsaError`` it raised (the others are still registered).
+
+    basis: a bundled name or .npz path (each worker loads it once); scans: objects with verts, faces,
+    face_weights and landmarks (``workflows.Scan``); options: a ``workflows.Options``. callback gets one
+    progress bar over all the scans (the mean of their fractions) and each scan's preview
+    ({"code", "transform", "item"}); cancel (a CancelToken) stops the processes at once and raises
+    SolveCancelled; progress_every: seconds between two events a worker sends. Raises InputError when
+    Dask is not installed.
+    """
+    from .basis_io import resolve_basis_path
+
+    distributed = _distributed()
+    basis_path = str(resolve_basis_path(basis))
+    if workers < 1:
+        raise InputError(f"workers must be at least 1, got {workers}")
+    monitor = Monitor("register", callback, cancel)
+    plain = plain_options(options)
+    fractions, previews, messages = [0.0] * len(scans), {}, {}
+
+    def on_event(event):  # the client's event loop thread: only store, the loop below reports
+        message = event[1]
+        k = message["item"]
+        fractions[k] = max(fractions[k], message["fraction"])
+        messages[k] = message["message"]
+        if "preview" in message:
+            previews[k] = message["preview"]
+
+    monitor.report(0.0, f"starting {min(workers, len(scans))} worker processes")
+    cluster = distributed.LocalCluster(n_workers=min(workers, len(scans)), threads_per_worker=1, processes=True,
+                                       host="127.0.0.1", dashboard_address=None, preload=_solver_preload())
+    client = distributed.Client(cluster)
+    try:
+        client.subscribe_topic(PROGRESS_TOPIC, on_event)
+        task = _SolverFunction("register_array")
+        futures = [client.submit(task, basis_path, {"verts": np.asarray(s.verts), "faces": np.asarray(s.faces),
+                                                    "face_weights": s.face_weights, "landmarks": s.landmarks},
+                                 k, plain, 1, progress_every, key=f"bareesa-scan-{k}-{time.time_ns()}", pure=False)
+                   for k, s in enumerate(scans)]
+        results = [None] * len(scans)
+        while any(r is None for r in results):
+            monitor.check()
+            for k, fut in enumerate(futures):
+                if results[k] is None and fut.done():
+                    try:
+                        state = fut.result()
+                    except Exception as err:  # noqa: BLE001 - e.g. a worker killed: this scan fails, not the others
+                        state = {"error": f"{type(err).__name__}: {err}".splitlines()[0], "kind": "BareEsaError"}
+                    if "error" in state:
+                        kind = getattr(errors, state["kind"], BareEsaError)
+                        kind = kind if isinstance(kind, type) and issubclass(kind, BareEsaError) else BareEsaError
+                        results[k] = kind(f"scan {k + 1}: {state['error']}")
+                    else:
+                        results[k] = registration.RegistrationResult.from_state(state)
+                    fractions[k] = 1.0
+            done = sum(r is not None for r in results)
+            for k, preview in list(previews.items()):
+                if results[k] is None:
+                    monitor.report(sum(fractions) / len(scans), messages.get(k, ""),
+                                   preview={"code": np.asarray(preview["code"]),
+                                            "transform": Similarity.from_dict(preview["transform"]), "item": k})
+            previews.clear()
+            monitor.report(sum(fractions) / len(scans), f"{done} of {len(scans)} scans registered")
+            if done < len(scans):
+                time.sleep(POLL_EVERY)
+        return results
+    finally:
+        client.close()
+        cluster.close()

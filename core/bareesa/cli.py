@@ -220,6 +220,9 @@ def cmd_extrapolate(args):
     # where a step did not converge, shooting refined time (shooting.ShootingReport): say where
     refined = {"shooting": motion.shooting.to_json()} if args.json else {
         "steps per frame": ",".join(str(k) for k in motion.shooting.substeps)}
+    if motion.shooting.speed_relaxed and not args.json:
+        refined["speed varied at frames"] = ",".join(str(k) for k in motion.shooting.speed_relaxed) + \
+            " (the body passes a creased, almost flat joint there; kept at the finest step)"
     _print({"frames": len(motion.path), "seconds": time.perf_counter() - start, "output": str(args.output),
             **refined, **_detail_report(motion.ends, motion.detail)}, args.json,
            "geodesic extrapolation (frames 0 and 1 are the inputs)")

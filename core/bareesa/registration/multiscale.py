@@ -9,7 +9,7 @@ second level's sigma (at the first level's sigma a body is nearly front/back sym
 
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 import torch
@@ -87,6 +87,23 @@ class RegistrationResult:
                 "levels": [{k: (float(v) if isinstance(v, float) else v) for k, v in lv.items()}
                            for lv in self.levels],
                 "transform": self.transform.to_dict()}
+
+    def to_state(self):
+        """Everything as numpy arrays, numbers and dicts (no class of this package; what a worker process
+        sends back): the inverse of ``from_state``."""
+        state = {f.name: getattr(self, f.name) for f in fields(self)}
+        state["transform"] = self.transform.to_dict()
+        state["prealignment"] = None if self.prealignment is None else self.prealignment.to_dict()
+        return state
+
+    @classmethod
+    def from_state(cls, state):
+        """The result ``to_state`` gave."""
+        state = dict(state)
+        state["transform"] = Similarity.from_dict(state["transform"])
+        if state.get("prealignment") is not None:
+            state["prealignment"] = Similarity.from_dict(state["prealignment"])
+        return cls(**state)
 
 
 
