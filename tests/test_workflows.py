@@ -176,3 +176,28 @@ def test_random_bodies_over_many_seeds_are_finite_and_non_degenerate(sphere):
             assert areas.min() > 0.05 * template_areas.min()
             # no face flipped against the template's orientation (a fold-over)
             assert (np.einsum("fk,fk->f", vectors, face_geometry(basis.template, basis.faces)[0]) > 0).all()
+
+
+def test_a_random_body_that_creases_a_joint_flat_is_replaced_and_counted(sphere, monkeypatch):
+    from bareesa.mesh import triangle_quality
+
+    basis, _ = sphere
+    plain = workflows.random_bodies(basis, 3, 2, shoot_steps=2)
+    assert plain.replaced == 0 and not any(
+        workflows.creased(basis.template, basis.faces, basis.template + np.tensordot(c, basis.fields, 1))
+        for c in plain.codes)
+    flat = basis.template.copy()  # one triangle flattened to a sliver
+    a, b, c = basis.faces[0]
+    flat[c] = (flat[a] + flat[b]) / 2 + 1e-3 * (flat[c] - (flat[a] + flat[b]) / 2)
+    assert triangle_quality(flat, basis.faces)[0] < 0.01
+    real_creased, asked = workflows.creased, []
+
+    def creased(template, faces, verts, **kwargs):  # the first draw's body creased
+        asked.append(verts)
+        return len(asked) == 1 or real_creased(template, faces, verts, **kwargs)
+
+    monkeypatch.setattr(workflows, "creased", creased)
+    bodies = workflows.random_bodies(basis, 3, 2, shoot_steps=2)
+    assert bodies.replaced == 1 and np.allclose(bodies.codes[:2], plain.codes[1:])
+    assert real_creased(basis.template, basis.faces, flat) and not real_creased(basis.template, basis.faces,
+                                                                                 2.0 * basis.template)

@@ -66,7 +66,8 @@ class BAREESA_OT_generate_random(SolveOperator, bpy.types.Operator):
                                                       0.0))
                 made.append(obj)
             select_only(context, made)
-            note = f"; {replaced} draw{'s' * (replaced > 1)} could not be shot and were replaced" if replaced else ""
+            note = (f"; {replaced} draw{'s' * (replaced > 1)} could not be shot or creased a joint flat and were "
+                    "replaced") if replaced else ""
             return f"{n} random bodies (seed {seed}) in collection '{coll.name}'{note}"
 
         return Task("random bodies", solve, apply)

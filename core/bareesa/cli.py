@@ -247,7 +247,7 @@ def cmd_sample(args):
         raise InputError(f"basis '{basis.name}' carries no fitted distribution: give --fit FILES")
     bodies = random_bodies(basis, args.n, args.seed, fit=fit, components=args.components)
     _write_frames(args.output, basis, bodies.codes, prefix="sample")
-    # draws that could not be shot were replaced by further draws (workflows.sample_bodies): say how many
+    # draws that could not be shot or creased a joint flat were replaced by further draws (workflows.sample_bodies)
     _print({"samples": args.n, "seed": args.seed, "replaced": bodies.replaced, "output": str(args.output)},
            args.json, "random shapes")
 

@@ -45,16 +45,23 @@ def _check_codes(fields, *codes):
 #: L-BFGS relative decrease below which a geodesic solve stops (in whitened coordinates the
 #: energy converges in a few tens of iterations; later digits move the path by ~1e-5)
 GEODESIC_FTOL = 1e-10
+#: (window k, rtol r) for a geodesic between two known codes that frames are made from: stop once the
+#: energy fell by less than r of itself over the last k iterations. Measured on 4 pairs of random
+#: ``human`` bodies (10 time points, energies in float32): 21-26 iterations instead of 41-53, every
+#: decoded vertex within 0.20 mm of the float64 path solved to GEODESIC_FTOL (the time discretisation
+#: itself moves them by ~1 mm).
+FRAMES_PLATEAU = (5, 1e-5)
 
 
 def geodesic(template, faces, fields, alpha0, alpha1, weights, steps=10, max_iter=500, init=None,
-             metric=None, callback=None, cancel=None):
+             metric=None, callback=None, cancel=None, plateau=None):
     """Solve the latent boundary value problem between two codes.
 
     template (N, 3), faces (F, 3), fields (P, N, 3) torch tensors; alpha0, alpha1 (P,);
     steps T >= 2 time points including both ends; init (T, P) optional initial path;
     metric (P, P) a latent metric to precondition with (e.g. ``Basis.template_metric()``;
-    default G-bar at the mean of the end codes). The interior is optimised in coordinates
+    default G-bar at the mean of the end codes); plateau: (k, r) also stop once the energy fell by less
+    than r of itself over k iterations (e.g. FRAMES_PLATEAU). The interior is optimised in coordinates
     z with path = straight line + sqrt(dt) R^-1 z B (``time_whitening``, ``whitening``), in
     which the energy is close to |z|^2 + const, so L-BFGS converges in tens of iterations.
     """
@@ -92,7 +99,7 @@ def geodesic(template, faces, fields, alpha0, alpha1, weights, steps=10, max_ite
 
     monitor.report(0.0, "geodesic")
     z, value, nit = minimize_lbfgs(energy, z0.ravel(), monitor, max_iter=max_iter, message="geodesic",
-                                   ftol=GEODESIC_FTOL)
+                                   ftol=GEODESIC_FTOL, plateau=plateau)
     with torch.no_grad():
         path = path_of(torch.from_numpy(z).to(template.dtype)).double().cpu().numpy()
     path[0], path[-1] = alpha0, alpha1

@@ -220,6 +220,16 @@ def face_geometry(verts, faces):
     return vectors, np.linalg.norm(vectors, axis=1), p.mean(axis=1)
 
 
+def triangle_quality(verts, faces):
+    """Shape quality of each triangle, 4 sqrt(3) area / (sum of its squared edges): (N, 3), (F, 3) -> (F,)
+    in [0, 1], 1 for an equilateral triangle, 0 for a collapsed one; invariant to scale."""
+    p = _numpy(verts).astype(np.float64)[_numpy(faces)]
+    edges = p[:, [1, 2, 0]] - p
+    area = 0.5 * np.linalg.norm(np.cross(edges[:, 0], -edges[:, 2]), axis=1)
+    squared = (edges ** 2).sum(axis=(1, 2))
+    return np.divide(4 * np.sqrt(3) * area, squared, out=np.zeros_like(area), where=squared > 0)
+
+
 def check_mesh(verts, faces, name="mesh"):
     """The MeshError checks of :func:`validate_mesh`: -> verts (N, 3) float64, faces (F, 3) int64"""
     v, f = _numpy(verts), _numpy(faces)

@@ -18,6 +18,7 @@ import torch
 from . import evaluation, geodesics, latent, registration, shooting, statistics
 from .errors import InputError
 from .h2_metric import H2Weights
+from .mesh import triangle_quality
 from .progress import Monitor
 
 # ------------------------------------------------------------------------------------ inputs
@@ -60,7 +61,8 @@ def mesh_input(basis, verts, faces):
 class Options:
     """How the workflows solve: H2 weights (None: the basis'), registration schedule (None: the
     basis'), pre-alignment and varifold kernel (``registration.register``'s ``kernel``), geodesic
-    time points and L-BFGS cap, torch device and dtype.
+    time points and L-BFGS cap, torch device and dtype (and ``path_dtype``, that of a geodesic between
+    two known codes).
 
     steps is the time resolution of the boundary value problem, not the number of keyframes
     written (``path_between`` resamples to those): on humanoid geodesics keyframed at 24 frames,
@@ -75,6 +77,13 @@ class Options:
     max_iter: int = 500
     device: str = "cpu"
     dtype: torch.dtype = torch.float64
+    path_dtype: torch.dtype | None = torch.float32
+
+    def path_tensors(self, basis):
+        """The basis' tensors in which a geodesic between two known codes is solved: ``path_dtype`` (None:
+        ``dtype``). float32 halves the time of each iteration; with ``geodesics.FRAMES_PLATEAU`` the path
+        is within 0.2 mm of float64's on human bodies."""
+        return basis.tensors(dtype=self.path_dtype or self.dtype, device=self.device)
 
     def metric(self, basis):
         """The H2 weights to solve with."""
@@ -195,10 +204,10 @@ def geodesic_between(basis, a, b, options=Options(), callback=None, cancel=None)
         return LatentPath(ends=ends, path=m.path, distance=m.distance, matching=m)
     lo = _scan_share((a, b))
     ends = tuple(codes_of(basis, [a, b], options, monitor.scaled(0.0, lo), cancel))
-    template, faces, fields = options.tensors(basis)
+    template, faces, fields = options.path_tensors(basis)
     g = geodesics.geodesic(template, faces, fields, ends[0].code, ends[1].code, weights, steps=options.steps,
                            max_iter=options.max_iter, metric=basis.template_metric(weights),
-                           callback=monitor.scaled(lo, 1.0), cancel=cancel)
+                           callback=monitor.scaled(lo, 1.0), cancel=cancel, plateau=geodesics.FRAMES_PLATEAU)
     return LatentPath(ends=ends, path=g.path, distance=g.distance)
 
 
@@ -287,6 +296,20 @@ def transfer(basis, frames, identity, group, options=Options(), callback=None, c
 #: A random body whose geodesic cannot be shot is retried with twice the steps, then replaced by a
 #: further draw; at most this many draws per requested body.
 DRAWS_PER_BODY = 4
+#: A random body is replaced by a further draw when one of its triangles keeps less than this share of
+#: its shape quality on the template (``mesh.triangle_quality``): a joint creased flat. Measured on 50
+#: random ``human`` bodies drawn without it (seeds 0 and 1): 16 of the 17 bodies with self-intersecting
+#: faces had a triangle under 0.1 of its template quality, against 5 of the 33 without; 25 ``deformables``
+#: bodies kept 0.52 or more.
+CREASE_QUALITY = 0.1
+
+
+def creased(template, faces, verts, floor=CREASE_QUALITY):
+    """Whether a body (N, 3) in the template's topology has a triangle under ``floor`` of its quality on the
+    template (N, 3), faces (F, 3) (a joint creased flat, where limbs run through each other)."""
+    reference = triangle_quality(template, faces)
+    ratio = np.divide(triangle_quality(verts, faces), reference, out=np.ones_like(reference), where=reference > 0)
+    return bool(ratio.min() < floor)
 
 
 def stored_distribution(basis):
@@ -300,12 +323,15 @@ def sample_bodies(template, faces, fields, distribution, groups, weights, n, see
 
     Like ``statistics.sample_codes`` (the same first n draws for a seed), except that a
     draw whose geodesic does not converge is shot again with 2 x steps and, failing that,
-    replaced by a draw from a second stream of the same seed. -> (codes (n, P), replaced draws).
+    replaced by a draw from a second stream of the same seed, and so is a draw whose body is
+    ``creased``. -> (codes (n, P), replaced draws).
     """
     monitor = Monitor("sample", callback, cancel)
     velocities = list(statistics.sample_velocities(distribution, groups, n, seed))
     spares = iter(statistics.sample_velocities(distribution, groups, (DRAWS_PER_BODY - 1) * n, [seed, 1]))
     codes, replaced, error = [], 0, None
+    template_np, faces_np = template.detach().cpu().double().numpy(), faces.detach().cpu().numpy()
+    fields_np = fields.detach().cpu().double().numpy()
     while len(codes) < n:
         v = velocities.pop(0) if velocities else next(spares, None)
         if v is None:
@@ -315,11 +341,16 @@ def sample_bodies(template, faces, fields, distribution, groups, weights, n, see
         for k in (steps, 2 * steps):
             monitor.report(len(codes) / n, f"body {len(codes) + 1}/{n}" + (f" ({k} steps)" if k > steps else ""))
             try:
-                codes.append(shooting.shoot(template, faces, fields, np.zeros_like(v), v, weights, steps=k,
-                                            cancel=cancel)[-1])
-                break
+                code = shooting.shoot(template, faces, fields, np.zeros_like(v), v, weights, steps=k, cancel=cancel)[-1]
             except shooting.ShootingFailed as err:
                 error = err
+                continue
+            if creased(template_np, faces_np, template_np + np.tensordot(code, fields_np, axes=1)):
+                error = "their bodies crease a joint flat"
+                replaced += 1
+            else:
+                codes.append(code)
+            break
         else:
             replaced += 1
     return np.stack(codes), replaced
