@@ -1,6 +1,6 @@
 """Batch registration on Dask (issue 19): throughput at 1 and 2 workers, sequence mode vs independent.
 
-Simulated scans of the bundled ``humanoid`` basis: held-out bodies decoded from codes drawn from its
+Simulated scans of the default basis (``human``; ``--basis``): held-out bodies decoded from codes drawn from its
 stored distribution (``statistics.sample_velocities``), each turned into a remeshed, noisy, holed,
 randomly moved scan (``scan_simulator.simulate_scan``); and one 4D capture, a motion between two drawn
 codes seen by a fixed scanner (one similarity for every frame). Reports scans per minute (cluster start
@@ -9,7 +9,8 @@ size), the peak RSS per worker process, and for the capture, sequence mode (warm
 independent registration: seconds, error, frame-to-frame jitter (mean |registered motion - true motion|
 per frame step) and the seam check.
 Run: python -m bench.batch_registration [--scans 40] [--frames 20] [--workers 1,2] [--chunk K]
-(the issue's setting; a humanoid scan takes ~1-2 min per worker here: try --scans 4 --frames 4 first).
+(the issue's setting; a human scan takes ~1.5-2.5 min per single-threaded worker here: try --scans 2 --frames 3
+first).
 """
 
 import argparse

@@ -135,6 +135,7 @@ def main(argv=None):
     parser.add_argument("--basis", default="human", help="the basis to measure (a build of bases.build.human)")
     parser.add_argument("--scans", type=int, default=8, help="number of simulated scans to register")
     parser.add_argument("--bodies", type=int, default=50, help="random bodies checked for self-intersection")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the random bodies")
     parser.add_argument("--real", type=int, default=3, help="random orientations of the real body per basis")
     parser.add_argument("--skip", nargs="*", default=[],
                         choices=["registration", "real", "interpolation", "random", "ablation", "sheet"])
@@ -163,7 +164,7 @@ def main(argv=None):
     seqs = {key: seq[::BAKE_STEP] for key, seq in every_frame.items()}
     bodies = None
     if "random" not in args.skip or "sheet" not in args.skip:
-        summary, bodies = random_body_rows(basis, args.bodies)
+        summary, bodies = random_body_rows(basis, args.bodies, args.seed)
         if "random" not in args.skip:
             print(f"\nRandom bodies: {summary['with_none']} of {summary['bodies']} without self-intersection "
                   f"(median {summary['median_pairs']} intersecting face pairs, max {summary['max_pairs']})")
