@@ -209,3 +209,19 @@ def test_several_scans_register_in_worker_processes_like_in_blender(scene, tiny)
     assert bpy.ops.bareesa.register_scan(processes=2) == {"FINISHED"}
     made = set(bpy.data.objects.keys()) - before
     assert len(made) == 1 and not any(name.startswith("tri") for name in made)
+
+
+def test_worker_processes_that_cannot_start_fall_back_to_blenders_process(scene, tiny, monkeypatch):
+    distributed = pytest.importorskip("distributed")
+
+    def broken(*args, **kwargs):
+        raise OSError("no free port (test)")
+
+    monkeypatch.setattr(distributed, "LocalCluster", broken)
+    _, _, surface = tiny
+    scene.bareesa.prealign = False
+    select(*[add_mesh(f"scan{k}", *code_surface(surface, a), location=(3.0 * k, 0.0, 0.0))
+             for k, a in enumerate((ALPHA, -0.5 * ALPHA))])
+    assert bpy.ops.bareesa.register_scan(processes=2) == {"FINISHED"}
+    for k in range(2):
+        assert np.isfinite(key_values(bpy.data.objects[f"scan{k}_registered"], NAMES)).all()

@@ -39,16 +39,21 @@ class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
         names = [o.name for o in scans]
         options = solve_options(context, basis)
         processes = solver_processes(len(inputs), context, self.processes)
+        basis_file = solver.load_basis(ref, user_bases_dir())[1]  # worker processes load the basis by path
+
+        notes = []
 
         def solve(callback, cancel):
-            if processes <= 1:
-                return wf.codes_of(basis, inputs, options, callback, cancel)
-            # several scans at once in worker processes (Dask), one progress bar; a scan that fails is
-            # reported and the others are still registered
-            basis_file = solver.load_basis(ref, user_bases_dir())[1]  # the workers load it by path
-            results = solver.module("batch").register_scans(basis_file, inputs, options, workers=processes,
-                                                            callback=callback, cancel=cancel)
-            return [r if isinstance(r, Exception) else wf.Code(r.code, registration=r) for r in results]
+            if processes > 1:
+                # several scans at once in worker processes (Dask), one progress bar; a scan that fails is
+                # reported and the others are still registered
+                try:
+                    results = solver.module("batch").register_scans(basis_file, inputs, options, workers=processes,
+                                                                    callback=callback, cancel=cancel)
+                    return [r if isinstance(r, Exception) else wf.Code(r.code, registration=r) for r in results]
+                except solver.module("errors").WorkersUnavailable as err:
+                    notes.append(f"{err}: registered one at a time in Blender instead")
+            return wf.codes_of(basis, inputs, options, callback, cancel)
 
         shown = {}  # input index -> name of its preview object
 
@@ -87,6 +92,8 @@ class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
             check_codes(codes)
             scan_objects = [find_object(n) for n, _ in kept]
             made = [add_registered(context, basis, ref, scan, c.registration) for scan, c in zip(scan_objects, codes)]
+            for note in notes:
+                self.report({"WARNING"}, note)
             for name, err in failed:
                 self.report({"WARNING"}, f"'{name}' was not registered: {str(err).removeprefix('scan ')}")
             select_only(context, made)

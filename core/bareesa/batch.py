@@ -552,12 +552,17 @@ def register_scans(basis, scans, options, *, workers=2, callback=None, cancel=No
     face_weights and landmarks (``workflows.Scan``); options: a ``workflows.Options``. callback gets one
     progress bar over all the scans (the mean of their fractions) and each scan's preview
     ({"code", "transform", "item"}); cancel (a CancelToken) stops the processes at once and raises
-    SolveCancelled; progress_every: seconds between two events a worker sends. Raises InputError when
-    Dask is not installed.
+    SolveCancelled; progress_every: seconds between two events a worker sends. Raises WorkersUnavailable
+    when Dask is not installed or its local cluster does not start.
     """
     from .basis_io import resolve_basis_path
 
-    distributed = _distributed()
+    if not scans:
+        return []
+    try:
+        distributed = _distributed()
+    except InputError as err:
+        raise errors.WorkersUnavailable(str(err)) from None
     basis_path = str(resolve_basis_path(basis))
     if workers < 1:
         raise InputError(f"workers must be at least 1, got {workers}")
@@ -573,10 +578,15 @@ def register_scans(basis, scans, options, *, workers=2, callback=None, cancel=No
         if "preview" in message:
             previews[k] = message["preview"]
 
-    monitor.report(0.0, f"starting {min(workers, len(scans))} worker processes")
-    cluster = distributed.LocalCluster(n_workers=min(workers, len(scans)), threads_per_worker=1, processes=True,
-                                       host="127.0.0.1", dashboard_address=None, preload=_solver_preload())
-    client = distributed.Client(cluster)
+    n_workers = min(workers, len(scans))
+    monitor.report(0.0, f"starting {n_workers} worker processes")
+    try:
+        cluster = distributed.LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                                           host="127.0.0.1", dashboard_address=None, preload=_solver_preload())
+        client = distributed.Client(cluster)
+    except Exception as err:  # noqa: BLE001 - the caller can register in its own process instead
+        raise errors.WorkersUnavailable(f"could not start {n_workers} worker processes ({type(err).__name__}: "
+                                        f"{err})".splitlines()[0]) from err
     try:
         client.subscribe_topic(PROGRESS_TOPIC, on_event)
         task = _SolverFunction("register_array")

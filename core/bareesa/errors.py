@@ -23,3 +23,7 @@ class SolveDiverged(BareEsaError):
 
 class ShootingFailed(BareEsaError):
     """A step of the initial value problem did not converge or produced non-finite values."""
+
+
+class WorkersUnavailable(BareEsaError):
+    """Worker processes could not be started (Dask missing or its local cluster failing)."""
