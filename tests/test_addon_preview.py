@@ -48,6 +48,7 @@ def interface(monkeypatch):
 
     class Op(jobs.SolveOperator):
         basis = ""
+        processes = -1
         prepare = BAREESA_OT_register_scan.prepare
 
         def __init__(self):
