@@ -21,7 +21,9 @@ from bench.common import markdown_table, report
 from bareesa import basis_io, registration, synthetic, workflows
 from bareesa.scan_simulator import simulate_scan
 
-#: A residual above FACTOR x the held-out 95th percentile is a poor fit.
+#: A residual above FACTOR x the held-out 95th percentile is a poor fit (default of --factor). On the
+#: human basis 1.6 (bench/README, "Bodies registered facing backwards"): in 40 held-out scans the right
+#: fits stayed under 1.13 x p95 and the backwards ones started at 1.8 x.
 FACTOR = 3.0
 
 
@@ -33,6 +35,7 @@ def main():
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--write", action="store_true", help="store the threshold in the basis card")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--factor", type=float, default=FACTOR, help="poor fit above this x the held-out p95")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     basis = basis_io.load_basis(args.basis)
@@ -54,19 +57,20 @@ def main():
     foreign = registration.register(basis, torus_v, torus_f, device=args.device).residual
     rows.append(["a torus (a shape no basis here makes)", len(torus_f), foreign, float("nan")])
     p95 = float(np.percentile(residuals, 95))
-    threshold = FACTOR * p95
+    threshold = args.factor * p95
     text = (f"# Fit calibration: basis '{basis.name}', {args.scans} held-out simulated scans\n\n"
             + markdown_table(["scan", "faces", "residual (of size)", "seconds"], rows, "{:.4g}")
             + f"\n\nheld-out median {np.median(residuals):.4g}, 95th percentile {p95:.4g}, max {max(residuals):.4g};"
-            f" poor fit above {threshold:.4g} ({FACTOR:g} x p95); the torus scores {foreign:.4g}"
+            f" poor fit above {threshold:.4g} ({args.factor:g} x p95); the torus scores {foreign:.4g}"
             f" ({foreign / threshold:.2g} x the threshold)")
     report(f"fit_calibration_{basis.name}", text)
     if args.write:
         basis_io.update_card(args.basis, fit_check={
             "residual": "mean distance from the scan to the registered surface / basis size (template frame)",
             "held_out_median": float(np.median(residuals)), "held_out_p95": p95, "held_out_max": float(max(residuals)),
-            "poor_fit_above": threshold, "factor": FACTOR, "scans": int(args.scans), "foreign_torus": float(foreign),
-            "measured_by": f"python -m bench.fit_calibration --basis {args.basis} --scans {args.scans} --write",
+            "poor_fit_above": threshold, "factor": args.factor, "scans": int(args.scans), "foreign_torus": float(foreign),
+            "measured_by": f"python -m bench.fit_calibration --basis {args.basis} --scans {args.scans} "
+                           f"--factor {args.factor:g} --write",
             "date": time.strftime("%Y-%m-%d")})
         print(f"wrote fit_check into the card of {basis_io.resolve_basis_path(args.basis)}")
 

@@ -105,3 +105,35 @@ def test_prealignment_scale_stays_bounded_and_finite_on_a_scan_with_far_clutter(
     for score, sim in prealign_candidates(verts, faces, scan_v, scan_f):
         assert np.isfinite(score) and np.isfinite(sim.matrix()).all()
         assert abs(math.log(sim.scale / matched)) <= PREALIGN_LOG_SCALE_LIMIT + 1e-9
+
+
+def test_a_poor_fit_is_registered_again_from_other_alignments(basis, monkeypatch):
+    """Started only from the right alignment turned half a turn, the fit is poor; the retry from the
+    half turns of that fit finds the right one (a human scan registered facing backwards, in miniature)."""
+    from bareesa.latent import Level
+
+    schedule = (Level(0.25, 1e3, 1, 10), Level(0.1, 1e5, 1, 10))
+    code = np.array([0.6, -0.5, 0.4, 0.5])
+    u, faces = synthetic.resampled_sphere(2, seed=3)
+    truth = basis.template + np.tensordot(code, basis.fields, axes=1)
+    scan = truth[np.argmin(((u[:, None] - synthetic.icosphere(2)[0][None]) ** 2).sum(-1), axis=1)]
+    right = registration.register(basis, scan, faces, schedule=schedule)
+    flips = multiscale.half_turns(basis)
+    assert all(np.allclose(f.compose(f).rotation, np.eye(3)) for f in flips)
+    basis.fit_check = {"poor_fit_above": 2 * right.residual}
+    try:
+        for flip in flips:
+            wrong_start = [(0.0, flip.compose(right.transform))]
+            monkeypatch.setattr(multiscale, "prealign_candidates", lambda *a, **k: list(wrong_start))
+            once = registration.register(basis, scan, faces, schedule=schedule, retry=False)
+            if not once.poor_fit:
+                continue  # this half turn is a symmetry of the scan: nothing to retry
+            again = registration.register(basis, scan, faces, schedule=schedule)
+            assert once.retried_alignments == 0 and again.retried_alignments >= 3
+            assert again.poor_fit is False and again.to_json()["retried_alignments"] == again.retried_alignments
+            assert again.residual < 0.5 * once.residual and again.residual < 1.5 * right.residual
+            break
+        else:
+            pytest.fail("no half turn of the right alignment gave a poor fit: the test proves nothing")
+    finally:
+        basis.fit_check = {}

@@ -102,6 +102,10 @@ class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
                 self.report({"WARNING"}, f"poor fit: {', '.join(poor)} {'are' if len(poor) > 1 else 'is'} far from "
                                          f"the scan, beyond what basis '{basis.name}' reaches on its own scans; check "
                                          "the selection, mask floors or add landmarks")
+            retried = [o.name for o, c in zip(made, codes) if getattr(c.registration, "retried_alignments", 0)]
+            if retried:
+                self.report({"INFO"}, f"the first fit of {', '.join(retried)} was poor: registered again from other "
+                                      "alignments, kept the better")
             if skipped:
                 self.report({"WARNING"}, f"skipped {len(skipped)} selected object{'s' * (len(skipped) > 1)} that "
                                          f"{'are' if len(skipped) > 1 else 'is'} not a mesh: {', '.join(skipped)}")

@@ -14,7 +14,7 @@ what finished.
 With ``sequence=True`` the scans are the frames of one 4D capture, in order, cut into chunks that
 run in parallel: a chunk's first frame is registered fully, each further frame starts from the
 previous frame's code and alignment (the scan mapped by the previous transform, no pre-alignment,
-no pose candidates, the finest WARM_LEVELS levels of the schedule only). The seams between chunks
+no pose candidates, the schedule less its WARM_SKIP_LEVELS coarsest levels). The seams between chunks
 are checked for jumps against the median frame-to-frame motion.
 ``register_scans`` is the same on scans in memory (the add-on's *Register Scans* with several
 selected): a LocalCluster of single-threaded processes, one progress bar fed by the workers'
@@ -51,8 +51,10 @@ SUMMARY_CSV = "summary.csv"
 RECORD_VERSION = 1
 #: A seam whose vertex jump is above this many times the median frame-to-frame motion is flagged.
 SEAM_FACTOR = 3.0
-#: A warm-started frame of a sequence runs only this many of the schedule's finest levels.
-WARM_LEVELS = 1
+#: A warm-started frame of a sequence skips this many of the schedule's coarsest levels (the finest always
+#: runs): the previous frame gives the far pose they find. On a human capture (3 levels) the finest level
+#: alone took twice as long as the two finest from the previous code (bench/README).
+WARM_SKIP_LEVELS = 1
 #: Columns of summary.csv, in order.
 SUMMARY_COLUMNS = ("index", "name", "scan", "status", "varifold", "chamfer", "residual", "poor_fit", "iterations",
                    "seconds", "worker", "warm_start", "mesh", "seam_jump", "seam_flagged", "error")
@@ -136,10 +138,10 @@ def register_one(basis, scan, previous=None, threads=1, options=None):
         kwargs = dict(options or {})
         if previous is not None and previous.get("status") == "ok":
             # warm start: map the scan by the previous alignment, start from the previous code
-            # and run only the finest levels (the coarse ones find a far pose the previous frame gives)
+            # and skip the coarsest levels (they find a far pose the previous frame gives)
             before = Similarity.from_dict(previous["transform"])
             schedule = tuple(basis.schedule if kwargs.get("schedule") is None else kwargs["schedule"])
-            kwargs["schedule"] = schedule[-WARM_LEVELS:]
+            kwargs["schedule"] = schedule[min(WARM_SKIP_LEVELS, len(schedule) - 1):]
             res = registration.register(basis, before.apply(verts), faces, prealign=False, refine_transform=True,
                                         init_code=np.asarray(previous["code"]), pose_candidates=None, **kwargs)
             transform = res.transform.compose(before)
@@ -159,6 +161,7 @@ def register_one(basis, scan, previous=None, threads=1, options=None):
             "chamfer": chamfer(vertices, verts), "levels": levels,
             "residual": None if getattr(res, "residual", None) is None else float(res.residual),
             "poor_fit": getattr(res, "poor_fit", None),
+            "retried_alignments": int(getattr(res, "retried_alignments", 0)),
             "iterations": int(sum(lv.get("iterations", 0) for lv in levels)),
             "seconds": time.perf_counter() - start, "vertices": vertices}
 

@@ -273,6 +273,9 @@ def cmd_register(args):
         _print({"output": str(args.output), "varifold": out["varifold"], "chamfer": out["chamfer"],
                 "residual": out["residual"], "seconds": out["seconds"]}, False,
                f"registered {args.scan} onto basis '{basis.name}'")
+    if res.retried_alignments and not args.json:
+        print(f"the first fit was poor: registered again from {res.retried_alignments} other alignments, "
+              "kept the better")
     if res.poor_fit:
         print(f"bareesa register: warning: poor fit: the scan is {res.residual:.3g} of the basis' size from the "
               f"registered surface, above the {basis.fit_check['poor_fit_above']:.3g} the basis reaches on its own "

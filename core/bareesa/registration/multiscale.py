@@ -4,7 +4,10 @@ A deformed scan of a nearly symmetric template can match a flipped template bett
 one, so ``register`` runs a short first level from each distinct pre-alignment candidate whose
 varifold is within PREALIGN_RATIO of the best, ranks them by ``screen_score`` and, when the best two
 are within SCREEN_TIE, runs a short second level from both and keeps the one that fits better at the
-second level's sigma (at the first level's sigma a body is nearly front/back symmetric).
+second level's sigma (at the first level's sigma a body is nearly front/back symmetric). A fit that is
+still poor (``is_poor_fit``; most often a body registered facing backwards) is registered again from
+the other screened alignments and from itself turned half a turn about each of the template's
+principal axes (``half_turns``), and the better of the two is kept.
 """
 
 import math
@@ -61,7 +64,9 @@ class RegistrationResult:
     prealignment the candidate alignment the registration started from; residual the mean distance
     from the scan to the registered surface over the basis' size (``fit_residual``); poor_fit whether
     it is far above what the basis reaches on its own scans (``basis.fit_check``; None uncalibrated);
-    normal_spread the scan's (``problem.normal_spread``), which chose the finest kernel of "auto".
+    normal_spread the scan's (``problem.normal_spread``), which chose the finest kernel of "auto";
+    retried_alignments how many other alignments a poor fit was tried again from (0: none; the result
+    is the better of the two tries).
     """
 
     code: np.ndarray
@@ -76,14 +81,16 @@ class RegistrationResult:
     residual: float = None
     poor_fit: bool = None
     normal_spread: float = None
+    retried_alignments: int = 0
 
     def to_json(self):
-        """JSON-ready summary {code, varifold, chamfer, residual, poor_fit, normal_spread, seconds, levels,
-        transform}."""
+        """JSON-ready summary {code, varifold, chamfer, residual, poor_fit, retried_alignments, normal_spread,
+        seconds, levels, transform}."""
         return {"code": [float(c) for c in self.code], "varifold": float(self.varifold),
                 "normal_spread": None if self.normal_spread is None else float(self.normal_spread),
                 "chamfer": float(self.chamfer), "seconds": float(self.seconds),
                 "residual": None if self.residual is None else float(self.residual), "poor_fit": self.poor_fit,
+                "retried_alignments": int(self.retried_alignments),
                 "levels": [{k: (float(v) if isinstance(v, float) else v) for k, v in lv.items()}
                            for lv in self.levels],
                 "transform": self.transform.to_dict()}
@@ -211,7 +218,7 @@ def is_poor_fit(basis, residual):
 def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, landmarks=None,
              landmark_weight=1.0, scan_face_weights=None, metric=None, kernel="auto", backend="auto",
              binning="auto", refine_transform=None, init_code=None, pose_candidates="auto", callback=None, cancel=None,
-             dtype=torch.float64, device="cpu"):
+             dtype=torch.float64, device="cpu", retry=True):
     """Latent code of an unregistered scan: basis, scan (M, 3), (G, 3) -> RegistrationResult.
 
     schedule: Levels (default basis.schedule); prealign: align the scan to the template first
@@ -233,7 +240,8 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     straight path 0 -> init_code; pose_candidates (K, P): codes whose pose group (the whole code
     when the basis has no other group) is tried as a start of the second level (see POSE_FINALISTS),
     "auto" the basis' ``extras["pose_prototypes"]`` if it has them, None none; dtype: precision of
-    the objective (the optimiser is float64).
+    the objective (the optimiser is float64); retry: when the fit is poor (and prealign), register
+    again from other alignments and keep the better (``retried_alignments``).
     Raises MeshError/InputError on bad input (``check_plausible_scan``: too few faces, flat), SolveCancelled
     when cancelled (no partial result).
     """
@@ -277,14 +285,50 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
         candidates = [(0.0, Similarity())]
     problem = RegistrationProblem(basis, sv, sf, face_w, marks, landmark_weight, metric, backend, binning,
                                   refine_transform, dtype, device, monitor)
+    lo = PREALIGN_FRACTION if prealign else 0.0
+    used = sv if face_w is None else sv[np.unique(sf[face_w > 0])]
+    fit = _fit(problem, basis, levels, kernels, poses, path, candidates, used, monitor, lo)
+    retried = 0
+    if fit["poor"] and prealign and retry:
+        # a poor fit is most often the body turned the wrong way round (a human scan facing backwards
+        # fits with a residual 2-15 times the right one's): go again from the other screened alignments
+        # and from the fit turned half a turn about each of the template's principal axes
+        others = [candidates[j] for j in fit["order"] if j != fit["best"]]
+        others += [(0.0, flip.compose(fit["transform"])) for flip in half_turns(basis)]
+        monitor.report(lo, f"registration: poor fit (residual {fit['residual']:.3g}), retrying from "
+                           f"{len(others)} other alignments")
+        again = _fit(problem, basis, levels, kernels, poses, path, others, used, monitor, lo)
+        retried = len(others)
+        if again["residual"] < fit["residual"]:
+            fit = again
+    code, transform = fit["path"][-1], fit["transform"]
+    vertices = transform.invert(basis.template + np.tensordot(code, basis.fields, axes=1))
+    return RegistrationResult(code=code, vertices=vertices, path=fit["path"], transform=transform,
+                              levels=fit["levels"], varifold=fit["levels"][-1]["varifold"],
+                              chamfer=chamfer(vertices, used), seconds=time.perf_counter() - start_time,
+                              prealignment=fit["initial"], residual=fit["residual"], poor_fit=fit["poor"],
+                              normal_spread=spread, retried_alignments=retried)
 
+
+def half_turns(basis):
+    """Half turns about the template's principal axes through its centroid (template frame): -> 3 Similarity."""
+    _, center, second = surface_moments(basis.template, basis.faces)
+    out = []
+    for axis in np.linalg.eigh(second)[1].T:
+        rotation = 2.0 * np.outer(axis, axis) - np.eye(3)
+        out.append(Similarity(rotation, 1.0, center - rotation @ center))
+    return out
+
+
+def _fit(problem, basis, levels, kernels, poses, path, candidates, used, monitor, lo):
+    """Every level from the best of candidate alignments [(score, Similarity)] (screened, see the module
+    docstring): -> {path, transform, levels, initial, residual, poor, order, best}."""
     # progress: the first level is tried from every candidate alignment
     budget = np.array([lv.steps * lv.max_iter for lv in levels], dtype=np.float64)
     budget[0] *= 1 + (len(candidates) / SCREEN_DIVISOR if len(candidates) > 1 else 0)
     tries_poses = poses is not None and len(levels) > 1
     if tries_poses:
         budget[1] += (POSE_FINALISTS + 1) * levels[1].steps * POSE_ITER
-    lo = PREALIGN_FRACTION if prealign else 0.0
     bounds = lo + (1 - lo) * np.concatenate([[0.0], np.cumsum(budget) / budget.sum()])
     name = lambda k: f"registration level {k + 1}/{len(levels)}"  # noqa: E731
     # screen every candidate alignment with a short first level; only the best one gets the full level
@@ -298,7 +342,7 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
         tries.append(problem.solve_level(screen, path, transform, (bounds[0] + j * span, bounds[0] + (j + 1) * span),
                                          name(0) + (f" (alignment {j + 1}/{len(candidates)})" if j else ""),
                                          kernels[0]))
-    best, resume = 0, None
+    best, resume, order = 0, None, [0]
     if len(tries) > 1:
         # the screened objectives ranked on fine cells; the finer second level decides between the best
         scores = [problem.screen_score(levels[0], p[-1], t, r["energy"]) for p, t, r in tries]
@@ -330,12 +374,7 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
         report.append(lv_report)
         monitor.report(bounds[k + 1], f"{name(k)} done", lv_report["objective"])
 
-    code = path[-1]
-    decoded = basis.template + np.tensordot(code, basis.fields, axes=1)
-    vertices = transform.invert(decoded)
-    used = sv if face_w is None else sv[np.unique(sf[face_w > 0])]
+    vertices = transform.invert(basis.template + np.tensordot(path[-1], basis.fields, axes=1))
     residual = fit_residual(basis, vertices, used, transform)
-    return RegistrationResult(code=code, vertices=vertices, path=path, transform=transform, levels=report,
-                              varifold=report[-1]["varifold"], chamfer=chamfer(vertices, used),
-                              seconds=time.perf_counter() - start_time, prealignment=initial, residual=residual,
-                              poor_fit=is_poor_fit(basis, residual), normal_spread=spread)
+    return {"path": path, "transform": transform, "levels": report, "initial": initial, "residual": residual,
+            "poor": is_poor_fit(basis, residual), "order": [int(j) for j in order], "best": best}
