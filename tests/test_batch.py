@@ -304,7 +304,9 @@ def test_cancelling_scans_in_processes_stops_the_workers_and_raises(tiny, scans)
 
 def test_a_vendored_copy_of_the_solver_registers_scans_in_processes(tiny, scans, tmp_path):
     """The Blender extension vendors the solver as <extension>/bareesa (imported as <package>.bareesa): its
-    workers import it as ``bareesa`` from that folder, not from the installed package."""
+    workers import it as ``bareesa`` from that folder, not from the installed package, and the scheduler
+    (in the client's process, where no top-level ``bareesa`` exists) unpickles the tasks: the installed
+    extension failed so ("Error during deserialization of the task graph") before ``_alias_solver``."""
     import shutil
     import subprocess
 
@@ -319,6 +321,15 @@ def test_a_vendored_copy_of_the_solver_registers_scans_in_processes(tiny, scans,
                 "    return {**_unmarked(*args, **kwargs), 'levels': [{'vendored': True}]}\n")
     script = f"""
 import sys, numpy as np
+
+
+class HideInstalled:  # as in Blender: the client process has no top-level bareesa of its own
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] == "bareesa":
+            raise ModuleNotFoundError("No module named " + repr(name))
+
+
+sys.meta_path.insert(0, HideInstalled())
 sys.path.insert(0, {str(tmp_path)!r})
 import my_extension.bareesa.batch as vb
 from my_extension.bareesa.mesh import load_mesh

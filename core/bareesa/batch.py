@@ -30,6 +30,7 @@ import importlib
 import json
 import math
 import os
+import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -480,6 +481,19 @@ def _solver_preload():
     return [f"import sys\nsys.path.insert(0, {str(Path(__file__).resolve().parent.parent)!r})\n"]
 
 
+def _alias_solver():
+    """Let this process import a vendored copy of the solver as ``bareesa`` too: a LocalCluster's scheduler
+    runs here and unpickles the tasks, whose function is ``bareesa.batch.<name>`` (``_SolverFunction``).
+    Every loaded module of the copy is entered in sys.modules under its ``bareesa`` name as well (the same
+    module objects, so the add-on's classes stay one), unless a ``bareesa`` is loaded already."""
+    if __package__ == "bareesa" or "bareesa" in sys.modules:
+        return
+    prefix = __package__
+    for name, module in list(sys.modules.items()):
+        if name == prefix or name.startswith(prefix + "."):
+            sys.modules.setdefault("bareesa" + name[len(prefix):], module)
+
+
 _WORKER_BASES = {}
 
 
@@ -583,6 +597,7 @@ def register_scans(basis, scans, options, *, workers=2, callback=None, cancel=No
 
     n_workers = min(workers, len(scans))
     monitor.report(0.0, f"starting {n_workers} worker processes")
+    _alias_solver()
     try:
         cluster = distributed.LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
                                            host="127.0.0.1", dashboard_address=None, preload=_solver_preload())
