@@ -469,8 +469,21 @@ class _SolverFunction:
     def __call__(self, *args, **kwargs):
         return globals()[self.name](*args, **kwargs)
 
+    def __reduce__(self):  # by name only: never by this copy's own module name, also when a scheduler re-pickles
+        return _Attribute("bareesa.batch", "_SolverFunction"), (self.name,)
+
+
+class _Attribute:
+    """Pickles as ``getattr(importlib.import_module(module), name)``."""
+
+    def __init__(self, module, name):
+        self.module, self.name = module, name
+
+    def __call__(self, *args):
+        return getattr(importlib.import_module(self.module), self.name)(*args)
+
     def __reduce__(self):
-        return getattr, (_Module("bareesa.batch"), self.name)
+        return getattr, (_Module(self.module), self.name)
 
 
 def _solver_preload():
