@@ -301,8 +301,7 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
         retried = len(others)
         if again["residual"] < fit["residual"]:
             fit = again
-    code, transform = fit["path"][-1], fit["transform"]
-    vertices = transform.invert(basis.template + np.tensordot(code, basis.fields, axes=1))
+    code, transform, vertices = fit["path"][-1], fit["transform"], fit["vertices"]
     return RegistrationResult(code=code, vertices=vertices, path=fit["path"], transform=transform,
                               levels=fit["levels"], varifold=fit["levels"][-1]["varifold"],
                               chamfer=chamfer(vertices, used), seconds=time.perf_counter() - start_time,
@@ -322,7 +321,7 @@ def half_turns(basis):
 
 def _fit(problem, basis, levels, kernels, poses, path, candidates, used, monitor, lo):
     """Every level from the best of candidate alignments [(score, Similarity)] (screened, see the module
-    docstring): -> {path, transform, levels, initial, residual, poor, order, best}."""
+    docstring): -> {path, transform, vertices, levels, initial, residual, poor, order, best}."""
     # progress: the first level is tried from every candidate alignment
     budget = np.array([lv.steps * lv.max_iter for lv in levels], dtype=np.float64)
     budget[0] *= 1 + (len(candidates) / SCREEN_DIVISOR if len(candidates) > 1 else 0)
@@ -376,5 +375,6 @@ def _fit(problem, basis, levels, kernels, poses, path, candidates, used, monitor
 
     vertices = transform.invert(basis.template + np.tensordot(path[-1], basis.fields, axes=1))
     residual = fit_residual(basis, vertices, used, transform)
-    return {"path": path, "transform": transform, "levels": report, "initial": initial, "residual": residual,
+    return {"path": path, "transform": transform, "vertices": vertices, "levels": report, "initial": initial,
+            "residual": residual,
             "poor": is_poor_fit(basis, residual), "order": [int(j) for j in order], "best": best}
