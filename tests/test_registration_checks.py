@@ -102,7 +102,7 @@ def test_prealignment_scale_stays_bounded_and_finite_on_a_scan_with_far_clutter(
     scan_f = np.concatenate([faces, speck_f + len(verts)])
     rho = lambda v, f: math.sqrt(np.trace(surface_moments(v, f)[2]))  # noqa: E731
     matched = rho(verts, faces) / rho(scan_v, scan_f)
-    for score, sim in prealign_candidates(verts, faces, scan_v, scan_f):
+    for score, sim, _ in prealign_candidates(verts, faces, scan_v, scan_f):
         assert np.isfinite(score) and np.isfinite(sim.matrix()).all()
         assert abs(math.log(sim.scale / matched)) <= PREALIGN_LOG_SCALE_LIMIT + 1e-9
 
@@ -123,7 +123,7 @@ def test_a_poor_fit_is_registered_again_from_other_alignments(basis, monkeypatch
     basis.fit_check = {"poor_fit_above": 2 * right.residual}
     try:
         for flip in flips:
-            wrong_start = [(0.0, flip.compose(right.transform))]
+            wrong_start = [multiscale.Alignment(0.0, flip.compose(right.transform))]
             monkeypatch.setattr(multiscale, "prealign_candidates", lambda *a, **k: list(wrong_start))
             once = registration.register(basis, scan, faces, schedule=schedule, retry=False)
             if not once.poor_fit:
@@ -137,3 +137,48 @@ def test_a_poor_fit_is_registered_again_from_other_alignments(basis, monkeypatch
             pytest.fail("no half turn of the right alignment gave a poor fit: the test proves nothing")
     finally:
         basis.fit_check = {}
+
+
+def _box_figure(left_arm, right_arm):
+    """A body box with two arm boxes, each turned (axis, degrees) about its shoulder: (V, 3), (F, 3)."""
+    parts = [trimesh.creation.box(extents=(0.4, 0.2, 1.0))]
+    for side, (axis, degrees) in ((1, left_arm), (-1, right_arm)):
+        arm = trimesh.creation.box(extents=(0.6, 0.1, 0.1))
+        arm.apply_translation((side * 0.3, 0, 0))
+        arm.apply_transform(trimesh.transformations.rotation_matrix(np.radians(degrees), axis))
+        arm.apply_translation((side * 0.2, 0, 0.4))
+        parts.append(arm)
+    mesh = trimesh.util.concatenate(parts).subdivide().subdivide()
+    return np.asarray(mesh.vertices), np.asarray(mesh.faces)
+
+
+def test_a_pose_far_from_the_template_is_prealigned_against_a_reference_surface():
+    """Arms in a T the template, one arm up and one forward the scan: the template's principal axes tie the
+    right alignment with its half turn; the posed reference surface (a decoded pose prototype) decides."""
+    from scipy.spatial.transform import Rotation
+
+    from bareesa.registration.prealign import prealign_candidates
+    from bareesa.transforms import rotation_angle
+
+    template, faces = _box_figure(((0, 1, 0), 0), ((0, 1, 0), 0))
+    posed, _ = _box_figure(((0, 1, 0), -80), ((0, 0, 1), -70))
+    turn = Rotation.random(random_state=3).as_matrix()
+    scan = posed @ turn.T + [1.0, 2.0, 3.0]
+    alone = prealign_candidates(template, faces, scan, faces)
+    assert all(c.reference is None for c in alone)
+    assert alone[1].score < 1.05 * alone[0].score  # a tie: the surfaces alone cannot tell the two apart
+    helped = prealign_candidates(template, faces, scan, faces, references=np.stack([template, posed]))
+    best = helped[0]
+    assert best.reference == 1 and rotation_angle(best.transform.rotation, turn.T) < 5.0
+    assert best.score < 0.1 * alone[0].score and best.score < 0.1 * helped[1].score
+    assert np.allclose(best.transform.apply(scan), posed, atol=0.05)
+
+
+def test_a_candidate_found_against_a_pose_prototype_is_screened_from_it():
+    poses = np.arange(12.0).reshape(3, 4)
+    zero = np.zeros((2, 4))
+    start = multiscale._start(zero, poses, multiscale.Alignment(0.1, None, 2))
+    assert np.array_equal(start, np.stack([np.zeros(4), poses[2]]))
+    assert multiscale._start(zero, poses, multiscale.Alignment(0.1, None)) is zero
+    given = np.stack([np.zeros(4), np.ones(4)])  # a caller's init_code wins
+    assert multiscale._start(given, poses, multiscale.Alignment(0.1, None, 2)) is given

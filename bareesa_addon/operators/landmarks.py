@@ -41,7 +41,7 @@ def guessed_points(basis, verts, tris, guess):
         from .. import solver
 
         prealign = solver.module("registration.prealign")
-        _, transform = prealign.prealign_candidates(basis.template, basis.faces, verts, tris)[0]
+        transform = prealign.prealign_candidates(basis.template, basis.faces, verts, tris)[0].transform
         points = transform.invert(template_points)  # template frame -> scan frame
     return dict(zip(basis.landmarks, points))
 

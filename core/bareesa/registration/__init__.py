@@ -27,9 +27,9 @@ back with the inverse similarity, so they overlay the scan in the scan's units.
 
 from .multiscale import RegistrationResult, register
 from .poses import pose_starts
-from .prealign import align_to_template, prealign_candidates, surface_moments
+from .prealign import Alignment, align_to_template, prealign_candidates, surface_moments
 from .problem import resample_in_time
 from .symmetric import Matching, symmetric_match
 
-__all__ = ["Matching", "RegistrationResult", "align_to_template", "pose_starts", "prealign_candidates",
+__all__ = ["Alignment", "Matching", "RegistrationResult", "align_to_template", "pose_starts", "prealign_candidates",
            "register", "resample_in_time", "surface_moments", "symmetric_match"]

@@ -4,7 +4,10 @@ A deformed scan of a nearly symmetric template can match a flipped template bett
 one, so ``register`` runs a short first level from each distinct pre-alignment candidate whose
 varifold is within PREALIGN_RATIO of the best, ranks them by ``screen_score`` and, when the best two
 are within SCREEN_TIE, runs a short second level from both and keeps the one that fits better at the
-second level's sigma (at the first level's sigma a body is nearly front/back symmetric). A fit that is
+second level's sigma (at the first level's sigma a body is nearly front/back symmetric). A basis with
+pose prototypes also lends them to the pre-alignment (a crouching scan's principal axes say nothing of
+the template's), and a candidate found against a prototype is screened from the straight path to that
+prototype's code (``_start``). A fit that is
 still poor (``is_poor_fit``; most often a body registered facing backwards) is registered again from
 the other screened alignments and from itself turned half a turn about each of the template's
 principal axes (``half_turns``), and the better of the two is kept.
@@ -27,7 +30,7 @@ from ..progress import Monitor
 from ..transforms import Similarity
 from ..varifold import KERNELS
 from .poses import POSE_FINALISTS, POSE_ITER, check_pose_candidates, try_poses
-from .prealign import PREALIGN_RATIO, landmark_alignment, prealign_candidates, surface_moments
+from .prealign import PREALIGN_RATIO, Alignment, landmark_alignment, prealign_candidates, surface_moments
 from .problem import RegistrationProblem, normal_spread
 
 SCREEN_DIVISOR = 8          # candidate alignments are screened with 1/8 of the first level's iterations
@@ -274,15 +277,16 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     monitor.report(0.0, "registration: pre-aligning" if prealign else "registration: starting")
     monitor.check()
     if prealign:
+        references = None if poses is None else basis.template + np.tensordot(poses, basis.fields, axes=1)
         candidates = prealign_candidates(basis.template, basis.faces, sv, sf, face_w, monitor=monitor,
-                                         progress=(0.0, PREALIGN_FRACTION))
-        candidates = [c for c in candidates if c[0] <= PREALIGN_RATIO * candidates[0][0] + 1e-12]
+                                         progress=(0.0, PREALIGN_FRACTION), references=references)
+        candidates = [c for c in candidates if c.score <= PREALIGN_RATIO * candidates[0].score + 1e-12]
         if marks is not None:  # three or more landmarks fix the orientation the surfaces alone may not
             by_marks = landmark_alignment(basis.template[marks[0]], marks[1], marks[2])
             if by_marks is not None:
-                candidates = [(0.0, by_marks)] + candidates
+                candidates = [Alignment(0.0, by_marks)] + candidates
     else:
-        candidates = [(0.0, Similarity())]
+        candidates = [Alignment(0.0, Similarity())]
     problem = RegistrationProblem(basis, sv, sf, face_w, marks, landmark_weight, metric, backend, binning,
                                   refine_transform, dtype, device, monitor)
     lo = PREALIGN_FRACTION if prealign else 0.0
@@ -294,7 +298,7 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
         # fits with a residual 2-15 times the right one's): go again from the other screened alignments
         # and from the fit turned half a turn about each of the template's principal axes
         others = [candidates[j] for j in fit["order"] if j != fit["best"]]
-        others += [(0.0, flip.compose(fit["transform"])) for flip in half_turns(basis)]
+        others += [Alignment(0.0, flip.compose(fit["transform"])) for flip in half_turns(basis)]
         monitor.report(lo, f"registration: poor fit (residual {fit['residual']:.3g}), retrying from "
                            f"{len(others)} other alignments")
         again = _fit(problem, basis, levels, kernels, poses, path, others, used, monitor, lo)
@@ -319,8 +323,16 @@ def half_turns(basis):
     return out
 
 
+def _start(path, poses, alignment):
+    """The path (2, P) a candidate alignment is screened from: the straight path to the pose prototype it was
+    found against (``Alignment.reference``), or ``path`` (also when that already leads somewhere: an init_code)."""
+    if alignment.reference is None or poses is None or np.any(path[-1]):
+        return path
+    return np.stack([np.zeros_like(path[-1]), poses[alignment.reference]])
+
+
 def _fit(problem, basis, levels, kernels, poses, path, candidates, used, monitor, lo):
-    """Every level from the best of candidate alignments [(score, Similarity)] (screened, see the module
+    """Every level from the best of candidate alignments [Alignment] (screened, see the module
     docstring): -> {path, transform, vertices, levels, initial, residual, poor, order, best}."""
     # progress: the first level is tried from every candidate alignment
     budget = np.array([lv.steps * lv.max_iter for lv in levels], dtype=np.float64)
@@ -336,9 +348,9 @@ def _fit(problem, basis, levels, kernels, poses, path, candidates, used, monitor
     share = len(candidates) / SCREEN_DIVISOR
     mid = bounds[1] if screen is levels[0] else bounds[0] + (bounds[1] - bounds[0]) * share / (1 + share)
     tries = []
-    for j, (_, transform) in enumerate(candidates):
+    for j, candidate in enumerate(candidates):
         span = (mid - bounds[0]) / len(candidates)
-        tries.append(problem.solve_level(screen, path, transform, (bounds[0] + j * span, bounds[0] + (j + 1) * span),
+        tries.append(problem.solve_level(screen, _start(path, poses, candidate), candidate.transform, (bounds[0] + j * span, bounds[0] + (j + 1) * span),
                                          name(0) + (f" (alignment {j + 1}/{len(candidates)})" if j else ""),
                                          kernels[0]))
     best, resume, order = 0, None, [0]
@@ -354,7 +366,7 @@ def _fit(problem, basis, levels, kernels, poses, path, candidates, used, monitor
                                           kernels[1], orient=True) for j in finalists]
             k = int(np.argmin([problem.screen_score(levels[1], p[-1], t, r["energy"]) for p, t, r in second]))
             best, resume = finalists[k], second[k]  # the second level goes on from the winner's short one
-    (path, transform, first), initial = tries[best], candidates[best][1]
+    (path, transform, first), initial = tries[best], candidates[best].transform
     if resume is not None:
         path, transform = resume[0], resume[1]
     elif screen is not levels[0]:

@@ -8,11 +8,14 @@ area-weighted centroid and orientation tensor sum a n n^T, which is exact for th
 to the binning of positions; ``bareesa.varifold``'s binned measures, summed by its backends);
 the best few are refined by L-BFGS over (axis-angle, translation, log-scale) at a coarse then a
 finer sigma. The binet kernel ignores normal orientation, so inconsistently oriented scans align
-as well.
+as well. A scan in a pose far from the template's (a crouch, arms spread) can have second moments
+whose axes say nothing of the template's: reference surfaces in the template frame (a basis' decoded
+pose prototypes), the few whose normalised moments are nearest the scan's, give candidates too.
 """
 
 import math
 from itertools import permutations, product
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -32,9 +35,22 @@ PREALIGN_KEEP = 6           # distinct ones refined at the finer sigma and tried
 PREALIGN_DISTINCT = 20.0    # degrees between two distinct candidates
 PREALIGN_RATIO = 4.0        # candidates whose varifold is within this factor of the best's are tried
 PREALIGN_MAX_ITER = 40
+#: Reference surfaces (``prealign_candidates(references=)``) whose normalised second moments are nearest
+#: the scan's are tried besides the template
+PREALIGN_REFERENCES = 4
 #: The refinement changes the moment-matched scale by at most this factor (log, bounded smoothly): an
 #: unbounded log-scale let a line search try e^(hundreds) and the objective overflow on plain body scans
 PREALIGN_LOG_SCALE_LIMIT = math.log(4.0)
+
+
+class Alignment(NamedTuple):
+    """A candidate alignment: score (the normalised squared varifold it reached), transform (Similarity
+    scan -> template frame) and reference (the index of the reference surface it was found against, None
+    for the template)."""
+
+    score: float
+    transform: Similarity
+    reference: int = None
 
 
 def _bounded_log_scale(l):
@@ -104,62 +120,82 @@ def _candidate_rotations(axes_t, axes_s):
 
 
 def prealign_candidates(template_verts, template_faces, scan_verts, scan_faces, scan_face_weights=None,
-                        keep=PREALIGN_KEEP, monitor=None, progress=(0.0, 1.0)):
-    """Distinct candidate alignments of a scan to a template, best first: -> [(varifold, Similarity)].
+                        keep=PREALIGN_KEEP, monitor=None, progress=(0.0, 1.0), references=None):
+    """Distinct candidate alignments of a scan to a template, best first: -> [Alignment].
 
     template (N, 3), (F, 3); scan (M, 3), (G, 3); scan_face_weights (G,) or None (zero-weight
-    faces are ignored). Each Similarity maps scan coordinates into the template frame; the
-    varifold is the (binned, binet) squared distance at the finer pre-alignment sigma between
-    the normalised template and the mapped scan. At most ``keep`` candidates, pairwise more
-    than PREALIGN_DISTINCT degrees apart.
+    faces are ignored); references (K, N, 3) or None: other surfaces with the template's faces, in
+    its frame (decoded pose prototypes), of which the PREALIGN_REFERENCES with normalised second
+    moments nearest the scan's give candidates too. Each transform maps scan coordinates into the
+    template frame; the score is the (binned, binet) squared distance at the finer pre-alignment sigma
+    between the normalised template (or reference) and the mapped scan, over the former's squared
+    norm. At most ``keep`` candidates, pairwise more than PREALIGN_DISTINCT degrees apart.
     """
     monitor = monitor or Monitor("prealign")
     lo, hi = progress
-    tv, tf = np.asarray(template_verts, np.float64), np.asarray(template_faces, np.int64)
+    tf = np.asarray(template_faces, np.int64)
     sv, sf = np.asarray(scan_verts, np.float64), np.asarray(scan_faces, np.int64)
-    _, ct, mt = surface_moments(tv, tf)
     _, cs, ms = surface_moments(sv, sf, scan_face_weights)
-    rho_t, rho_s = math.sqrt(np.trace(mt)), math.sqrt(np.trace(ms))
-    yt, zs = (tv - ct) / rho_t, (sv - cs) / rho_s
-    candidates = _candidate_rotations(np.linalg.eigh(mt)[1], np.linalg.eigh(ms)[1])
+    rho_s = math.sqrt(np.trace(ms))
+    zs = (sv - cs) / rho_s
+    surfaces = [np.asarray(template_verts, np.float64)]
+    if references is not None:
+        surfaces += [np.asarray(r, np.float64) for r in references]
+    targets = []  # per surface: centroid, RMS radius, normalised vertices, principal axes, moments, reference
+    for verts in surfaces:
+        _, ct, mt = surface_moments(verts, tf)
+        rho_t = math.sqrt(np.trace(mt))
+        targets.append((ct, rho_t, (verts - ct) / rho_t, np.linalg.eigh(mt)[1], np.linalg.eigvalsh(mt) / rho_t ** 2,
+                        len(targets) - 1 if targets else None))
+    spread_s = np.linalg.eigvalsh(ms) / rho_s ** 2
+    nearest = sorted(range(1, len(targets)), key=lambda i: np.abs(targets[i][4] - spread_s).sum())
+    targets = targets[:1] + [targets[i] for i in nearest[:PREALIGN_REFERENCES]]
+    axes_s = np.linalg.eigh(ms)[1]
 
-    def measures(sigma):
-        cell = PREALIGN_CELL * sigma
-        return (coarse_measure(yt, tf, None, cell), coarse_measure(zs, sf, scan_face_weights, cell))
+    cache = {}
 
-    coarse = CoarseVarifold(*measures(PREALIGN_SIGMAS[0]), PREALIGN_SIGMAS[0])
+    def objective(i, sigma):
+        if (i, sigma) not in cache:
+            cell = PREALIGN_CELL * sigma
+            cache[i, sigma] = CoarseVarifold(coarse_measure(targets[i][2], tf, None, cell),
+                                             coarse_measure(zs, sf, scan_face_weights, cell), sigma)
+        return cache[i, sigma]
+
     zero = torch.zeros(7, dtype=torch.float64)
-    scores = []
-    for r in candidates:
-        monitor.check()
-        with torch.no_grad():
-            scores.append(float(coarse(zero, torch.from_numpy(r))))
+    scored = []  # (score, surface, rotation)
+    for i, target in enumerate(targets):
+        coarse = objective(i, PREALIGN_SIGMAS[0])
+        for r in _candidate_rotations(target[3], axes_s):
+            monitor.check()
+            with torch.no_grad():
+                scored.append((float(coarse(zero, torch.from_numpy(r))) / coarse.self_t, i, r))
+    scored.sort(key=lambda c: c[0])
     span = (hi - lo) / (PREALIGN_REFINE + keep + 1)
-    monitor.report(lo + span, "pre-alignment: candidates scored", min(scores))
+    monitor.report(lo + span, "pre-alignment: candidates scored", scored[0][0])
 
     def refine(obj, r, x0, k):
         bounded = lambda p: torch.cat([p[:6], _bounded_log_scale(p[6:])])  # noqa: E731
         x, value, _ = minimize_lbfgs(lambda p: obj(bounded(p), torch.from_numpy(r)), x0, monitor,
                                      max_iter=PREALIGN_MAX_ITER, progress=(lo + k * span, lo + (k + 1) * span),
                                      message="pre-alignment", gtol=1e-9, ftol=1e-10)
-        return axis_angle_rotation(x[:3]) @ r, x, value
+        return axis_angle_rotation(x[:3]) @ r, x, value / obj.self_t
 
     stage = []
-    for k, i in enumerate(np.argsort(scores)[:PREALIGN_REFINE]):
-        r, x, value = refine(coarse, candidates[i], np.zeros(7), k + 1)
-        stage.append((value, r, x))
+    for k, (_, i, r0) in enumerate(scored[:PREALIGN_REFINE]):
+        r, x, value = refine(objective(i, PREALIGN_SIGMAS[0]), r0, np.zeros(7), k + 1)
+        stage.append((value, i, r, x))
     stage.sort(key=lambda s: s[0])
     distinct = []
-    for value, r, x in stage:
-        if all(rotation_angle(r, d[1]) > PREALIGN_DISTINCT for d in distinct):
-            distinct.append((value, r, x))
-    fine = CoarseVarifold(*measures(PREALIGN_SIGMAS[1]), PREALIGN_SIGMAS[1])
+    for value, i, r, x in stage:
+        if all(rotation_angle(r, d[2]) > PREALIGN_DISTINCT for d in distinct):
+            distinct.append((value, i, r, x))
     out = []
-    for k, (_, r0, x0) in enumerate(distinct[:keep]):
+    for k, (_, i, r0, x0) in enumerate(distinct[:keep]):
+        ct, rho_t = targets[i][:2]
         x0 = np.concatenate([np.zeros(3), x0[3:]])
-        r, x, value = refine(fine, r0, x0, PREALIGN_REFINE + 1 + k)
+        r, x, value = refine(objective(i, PREALIGN_SIGMAS[1]), r0, x0, PREALIGN_REFINE + 1 + k)
         scale = rho_t * math.exp(_bounded_log_scale(float(x[6]))) / rho_s
-        out.append((value / fine.self_t, Similarity(r, scale, ct + rho_t * x[3:6] - scale * r @ cs)))
+        out.append(Alignment(value, Similarity(r, scale, ct + rho_t * x[3:6] - scale * r @ cs), targets[i][5]))
     out.sort(key=lambda c: c[0])
     monitor.report(hi, "pre-alignment done", out[0][0])
     return out
@@ -173,7 +209,7 @@ def align_to_template(template_verts, template_faces, scan_verts, scan_faces, sc
     Similarity mapping scan coordinates into the template frame (best of ``prealign_candidates``).
     """
     return prealign_candidates(template_verts, template_faces, scan_verts, scan_faces, scan_face_weights,
-                               keep=1, monitor=monitor, progress=progress)[0][1]
+                               keep=1, monitor=monitor, progress=progress)[0].transform
 
 
 def landmark_alignment(template_points, scan_points, weights=None):
