@@ -48,8 +48,9 @@ def held_out_data(log=print):
 
 def surface_distances(a_verts, a_faces, b_verts, b_faces, samples=20000, seed=0):
     """Mean nearest-point distance a->b and b->a (area samples of each onto the other surface), Hausdorff."""
+    import bpy  # noqa: F401  (puts bpy's mathutils on the path: exact point-to-surface distances)
     import trimesh
-    from mathutils.bvhtree import BVHTree  # noqa: F401  (bpy's mathutils: exact point-to-surface distances)
+    from mathutils.bvhtree import BVHTree
 
     def one_way(src_v, src_f, dst_v, dst_f):
         pts = trimesh.sample.sample_surface(trimesh.Trimesh(src_v, src_f, process=False), samples, seed=seed)[0]
@@ -97,6 +98,7 @@ def real_body_rows(bases=("human", "humanoid"), n=3, seed=0):
 
 def self_intersections(verts, faces):
     """Number of intersecting pairs of faces that share no vertex (Blender's BVHTree.overlap)."""
+    import bpy  # noqa: F401  (puts bpy's mathutils on the path)
     from mathutils.bvhtree import BVHTree
 
     tree = BVHTree.FromPolygons(np.asarray(verts).tolist(), np.asarray(faces).tolist(), epsilon=0.0)

@@ -7,6 +7,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
+import trimesh
 
 from bareesa.errors import MeshError
 from bareesa.mesh import (MeshWarning, Normalisation, as_tensor, face_geometry, load_mesh, normalise,
@@ -411,3 +412,31 @@ def test_smoothed_normals_of_a_noisy_sphere_point_outwards_and_keep_its_area():
     flipped = f.copy()
     flipped[::2] = flipped[::2][:, ::-1]
     assert np.allclose(smoothed_normals(noisy, flipped, rings=2)[1], projected)
+
+
+def _two_spheres(offset):
+    a = trimesh.creation.icosphere(subdivisions=2)
+    b = trimesh.creation.icosphere(subdivisions=2)
+    b.apply_translation((offset, 0.1, 0.05))
+    both = trimesh.util.concatenate([a, b])
+    return np.asarray(both.vertices), np.asarray(both.faces)
+
+
+def test_self_intersections_are_the_face_pairs_blender_finds():
+    import bpy  # noqa: F401  (puts bpy's mathutils on the path)
+    from mathutils.bvhtree import BVHTree
+
+    from bareesa.mesh import self_intersections
+
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    assert self_intersections(sphere.vertices, sphere.faces).shape == (0, 2)
+    assert len(self_intersections(*_two_spheres(2.5))) == 0  # apart
+    verts, faces = _two_spheres(1.2)  # the spheres run through each other along a circle
+    pairs = self_intersections(verts, faces)
+    assert len(pairs) > 20 and (pairs[:, 0] < pairs[:, 1]).all()
+    half = len(faces) // 2
+    assert ((pairs[:, 0] < half) & (pairs[:, 1] >= half)).all()  # always one face of each sphere
+    tree = BVHTree.FromPolygons(verts.tolist(), faces.tolist(), epsilon=0.0)
+    shared = [set(f) for f in faces.tolist()]
+    blender = {(min(i, j), max(i, j)) for i, j in tree.overlap(tree) if i != j and not shared[i] & shared[j]}
+    assert {tuple(p) for p in pairs.tolist()} == blender

@@ -201,3 +201,22 @@ def test_a_random_body_that_creases_a_joint_flat_is_replaced_and_counted(sphere,
     assert bodies.replaced == 1 and np.allclose(bodies.codes[:2], plain.codes[1:])
     assert real_creased(basis.template, basis.faces, flat) and not real_creased(basis.template, basis.faces,
                                                                                  2.0 * basis.template)
+
+
+def test_a_random_body_whose_faces_cross_is_replaced_and_counted(sphere, monkeypatch):
+    from bareesa.mesh import self_intersections
+
+    basis, _ = sphere
+    plain = workflows.random_bodies(basis, 3, 2, shoot_steps=2)
+    assert plain.replaced == 0 and not any(
+        len(self_intersections(basis.template + np.tensordot(c, basis.fields, 1), basis.faces)) for c in plain.codes)
+    bodies_seen = []
+
+    def crossing(verts, faces):  # the template is asked first; then the first draw's body runs through itself
+        bodies_seen.append(verts)
+        return np.array([[0, 7]]) if len(bodies_seen) == 2 else self_intersections(verts, faces)
+
+    monkeypatch.setattr(workflows, "self_intersections", crossing)
+    bodies = workflows.random_bodies(basis, 3, 2, shoot_steps=2)
+    assert np.array_equal(bodies_seen[0], basis.template)
+    assert bodies.replaced == 1 and np.allclose(bodies.codes[:2], plain.codes[1:])

@@ -34,6 +34,7 @@ import scipy.sparse as sp
 import torch
 import trimesh
 from scipy.sparse.csgraph import breadth_first_order, connected_components
+from scipy.spatial import cKDTree
 
 from .errors import InputError, MeshError
 from .transforms import Similarity
@@ -228,6 +229,48 @@ def triangle_quality(verts, faces):
     area = 0.5 * np.linalg.norm(np.cross(edges[:, 0], -edges[:, 2]), axis=1)
     squared = (edges ** 2).sum(axis=(1, 2))
     return np.divide(4 * np.sqrt(3) * area, squared, out=np.zeros_like(area), where=squared > 0)
+
+
+def self_intersections(verts, faces):
+    """Pairs of faces that share no vertex and whose triangles cross: (N, 3), (F, 3) -> (K, 2) int64, i < j.
+
+    Two triangles in general position cross when an edge of one pierces the other, so every edge is
+    tested (Moller-Trumbore, segment parameter in [0, 1]) against the faces whose bounding spheres its
+    own meets (``scipy.spatial.cKDTree``); coplanar overlaps are not counted. A body's limbs running
+    through each other; what Blender's ``BVHTree.overlap`` finds, without Blender.
+    """
+    v, f = _numpy(verts).astype(np.float64), _numpy(faces).astype(np.int64)
+    p = v[f]
+    centres = p.mean(axis=1)
+    face_radius = np.linalg.norm(p - centres[:, None], axis=2).max(axis=1)
+    pairs = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    edges, edge_of = np.unique(pairs, axis=0, return_inverse=True)
+    around = sp.csr_matrix((np.ones(len(pairs)), (edge_of.ravel(), np.tile(np.arange(len(f)), 3))),
+                           shape=(len(edges), len(f)))  # edge -> the faces it bounds
+    a, b = v[edges[:, 0]], v[edges[:, 1]]
+    mids, half = 0.5 * (a + b), 0.5 * np.linalg.norm(b - a, axis=1)
+    near = cKDTree(mids).query_ball_tree(cKDTree(centres), float(half.max() + face_radius.max()))
+    e = np.repeat(np.arange(len(edges)), [len(n) for n in near])
+    t = np.fromiter((j for n in near for j in n), dtype=np.int64, count=len(e))
+    keep = np.linalg.norm(mids[e] - centres[t], axis=1) <= half[e] + face_radius[t]
+    keep &= ~(f[t] == edges[e, :1]).any(axis=1) & ~(f[t] == edges[e, 1:]).any(axis=1)
+    e, t = e[keep], t[keep]
+    # Moller-Trumbore: a + s (b - a) = p0 + u (p1 - p0) + w (p2 - p0), s in [0, 1], u, w >= 0, u + w <= 1
+    d, e1, e2 = b[e] - a[e], p[t, 1] - p[t, 0], p[t, 2] - p[t, 0]
+    h = np.cross(d, e2)
+    det = (e1 * h).sum(axis=1)
+    ok = np.abs(det) > 1e-15 * (np.linalg.norm(d, axis=1) * np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1))
+    inv = np.divide(1.0, det, out=np.zeros_like(det), where=ok)
+    q = a[e] - p[t, 0]
+    u = (q * h).sum(axis=1) * inv
+    r = np.cross(q, e1)
+    w = (d * r).sum(axis=1) * inv
+    along = (e2 * r).sum(axis=1) * inv
+    hit = ok & (u >= 0) & (w >= 0) & (u + w <= 1) & (along >= 0) & (along <= 1)
+    pierced = sp.csr_matrix((np.ones(int(hit.sum())), (e[hit], t[hit])), shape=(len(edges), len(f)))
+    found = np.stack((around.T @ pierced).nonzero(), axis=1)  # (face around a piercing edge, pierced face)
+    found = found[~(f[found[:, 0]][:, :, None] == f[found[:, 1]][:, None, :]).any(axis=(1, 2))]
+    return np.unique(np.sort(found, axis=1), axis=0).reshape(-1, 2)
 
 
 def check_mesh(verts, faces, name="mesh"):

@@ -18,7 +18,7 @@ import torch
 from . import evaluation, geodesics, latent, registration, shooting, statistics
 from .errors import InputError
 from .h2_metric import H2Weights
-from .mesh import triangle_quality
+from .mesh import self_intersections, triangle_quality
 from .progress import Monitor
 
 # ------------------------------------------------------------------------------------ inputs
@@ -325,7 +325,8 @@ def sample_bodies(template, faces, fields, distribution, groups, weights, n, see
     Like ``statistics.sample_codes`` (the same first n draws for a seed), except that a
     draw whose geodesic does not converge is shot again with 2 x steps and, failing that,
     replaced by a draw from a second stream of the same seed, and so is a draw whose body is
-    ``creased``. -> (codes (n, P), replaced draws).
+    ``creased`` or has more crossing faces than the template (``mesh.self_intersections``: a limb
+    through the body). -> (codes (n, P), replaced draws).
     """
     monitor = Monitor("sample", callback, cancel)
     velocities = list(statistics.sample_velocities(distribution, groups, n, seed))
@@ -333,6 +334,7 @@ def sample_bodies(template, faces, fields, distribution, groups, weights, n, see
     codes, replaced, error = [], 0, None
     template_np, faces_np = template.detach().cpu().double().numpy(), faces.detach().cpu().numpy()
     fields_np = fields.detach().cpu().double().numpy()
+    allowed = len(self_intersections(template_np, faces_np))  # a template's own touching parts are not the draw's
     while len(codes) < n:
         v = velocities.pop(0) if velocities else next(spares, None)
         if v is None:
@@ -346,8 +348,12 @@ def sample_bodies(template, faces, fields, distribution, groups, weights, n, see
             except shooting.ShootingFailed as err:
                 error = err
                 continue
-            if creased(template_np, faces_np, template_np + np.tensordot(code, fields_np, axes=1)):
+            body = template_np + np.tensordot(code, fields_np, axes=1)
+            if creased(template_np, faces_np, body):
                 error = "their bodies crease a joint flat"
+                replaced += 1
+            elif len(self_intersections(body, faces_np)) > allowed:
+                error = "their limbs run through their bodies"
                 replaced += 1
             else:
                 codes.append(code)
