@@ -28,6 +28,7 @@ import re
 import tempfile
 import warnings
 from dataclasses import dataclass, field
+from itertools import chain
 
 import numpy as np
 import scipy.sparse as sp
@@ -249,9 +250,16 @@ def self_intersections(verts, faces):
                            shape=(len(edges), len(f)))  # edge -> the faces it bounds
     a, b = v[edges[:, 0]], v[edges[:, 1]]
     mids, half = 0.5 * (a + b), 0.5 * np.linalg.norm(b - a, axis=1)
-    near = cKDTree(mids).query_ball_tree(cKDTree(centres), float(half.max() + face_radius.max()))
-    e = np.repeat(np.arange(len(edges)), [len(n) for n in near])
-    t = np.fromiter((j for n in near for j in n), dtype=np.int64, count=len(e))
+    es, ts = [], []
+    by_radius = np.argsort(face_radius)
+    for group in np.array_split(by_radius, np.searchsorted(face_radius[by_radius], np.percentile(face_radius, [50, 90]))):
+        # faces of similar size together, so that a query's radius is not set by the largest face of the mesh
+        if len(group):
+            near = cKDTree(centres[group]).query_ball_point(mids, half + face_radius[group].max(), return_sorted=False)
+            counts = np.fromiter(map(len, near), dtype=np.int64, count=len(near))
+            es.append(np.repeat(np.arange(len(edges)), counts))
+            ts.append(group[np.fromiter(chain.from_iterable(near), dtype=np.int64, count=int(counts.sum()))])
+    e, t = np.concatenate(es), np.concatenate(ts)
     keep = np.linalg.norm(mids[e] - centres[t], axis=1) <= half[e] + face_radius[t]
     keep &= ~(f[t] == edges[e, :1]).any(axis=1) & ~(f[t] == edges[e, 1:]).any(axis=1)
     e, t = e[keep], t[keep]
