@@ -252,7 +252,8 @@ def self_intersections(verts, faces):
     mids, half = 0.5 * (a + b), 0.5 * np.linalg.norm(b - a, axis=1)
     es, ts = [], []
     by_radius = np.argsort(face_radius)
-    for group in np.array_split(by_radius, np.searchsorted(face_radius[by_radius], np.percentile(face_radius, [50, 90]))):
+    splits = np.searchsorted(face_radius[by_radius], np.percentile(face_radius, [50, 90]))
+    for group in np.array_split(by_radius, splits):
         # faces of similar size together, so that a query's radius is not set by the largest face of the mesh
         if len(group):
             near = cKDTree(centres[group]).query_ball_point(mids, half + face_radius[group].max(), return_sorted=False)

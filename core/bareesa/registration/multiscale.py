@@ -350,7 +350,8 @@ def _fit(problem, basis, levels, kernels, poses, path, candidates, used, monitor
     tries = []
     for j, candidate in enumerate(candidates):
         span = (mid - bounds[0]) / len(candidates)
-        tries.append(problem.solve_level(screen, _start(path, poses, candidate), candidate.transform, (bounds[0] + j * span, bounds[0] + (j + 1) * span),
+        tries.append(problem.solve_level(screen, _start(path, poses, candidate), candidate.transform,
+                                         (bounds[0] + j * span, bounds[0] + (j + 1) * span),
                                          name(0) + (f" (alignment {j + 1}/{len(candidates)})" if j else ""),
                                          kernels[0]))
     best, resume, order = 0, None, [0]

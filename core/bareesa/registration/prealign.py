@@ -142,11 +142,11 @@ def prealign_candidates(template_verts, template_faces, scan_verts, scan_faces, 
     if references is not None:
         surfaces += [np.asarray(r, np.float64) for r in references]
     targets = []  # per surface: centroid, RMS radius, normalised vertices, principal axes, moments, reference
-    for verts in surfaces:
+    for k, verts in enumerate(surfaces):
         _, ct, mt = surface_moments(verts, tf)
         rho_t = math.sqrt(np.trace(mt))
         targets.append((ct, rho_t, (verts - ct) / rho_t, np.linalg.eigh(mt)[1], np.linalg.eigvalsh(mt) / rho_t ** 2,
-                        len(targets) - 1 if targets else None))
+                        k - 1 if k else None))
     spread_s = np.linalg.eigvalsh(ms) / rho_s ** 2
     nearest = sorted(range(1, len(targets)), key=lambda i: np.abs(targets[i][4] - spread_s).sum())
     targets = targets[:1] + [targets[i] for i in nearest[:PREALIGN_REFERENCES]]
@@ -155,10 +155,12 @@ def prealign_candidates(template_verts, template_faces, scan_verts, scan_faces, 
     cache = {}
 
     def objective(i, sigma):
+        """The coarse varifold against target i at sigma (its measures built once)."""
+        cell = PREALIGN_CELL * sigma
+        if sigma not in cache:
+            cache[sigma] = coarse_measure(zs, sf, scan_face_weights, cell)
         if (i, sigma) not in cache:
-            cell = PREALIGN_CELL * sigma
-            cache[i, sigma] = CoarseVarifold(coarse_measure(targets[i][2], tf, None, cell),
-                                             coarse_measure(zs, sf, scan_face_weights, cell), sigma)
+            cache[i, sigma] = CoarseVarifold(coarse_measure(targets[i][2], tf, None, cell), cache[sigma], sigma)
         return cache[i, sigma]
 
     zero = torch.zeros(7, dtype=torch.float64)
