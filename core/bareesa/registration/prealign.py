@@ -141,16 +141,15 @@ def prealign_candidates(template_verts, template_faces, scan_verts, scan_faces, 
     surfaces = [np.asarray(template_verts, np.float64)]
     if references is not None:
         surfaces += [np.asarray(r, np.float64) for r in references]
-    targets = []  # per surface: centroid, RMS radius, normalised vertices, principal axes, moments, reference
+    targets = []  # per surface: centroid, RMS radius, vertices, principal axes, normalised moments, reference
     for k, verts in enumerate(surfaces):
         _, ct, mt = surface_moments(verts, tf)
         rho_t = math.sqrt(np.trace(mt))
-        targets.append((ct, rho_t, (verts - ct) / rho_t, np.linalg.eigh(mt)[1], np.linalg.eigvalsh(mt) / rho_t ** 2,
-                        k - 1 if k else None))
-    spread_s = np.linalg.eigvalsh(ms) / rho_s ** 2
-    nearest = sorted(range(1, len(targets)), key=lambda i: np.abs(targets[i][4] - spread_s).sum())
+        spread, axes = np.linalg.eigh(mt)
+        targets.append((ct, rho_t, verts, axes, spread / rho_t ** 2, k - 1 if k else None))
+    spread_s, axes_s = np.linalg.eigh(ms)
+    nearest = sorted(range(1, len(targets)), key=lambda i: np.abs(targets[i][4] - spread_s / rho_s ** 2).sum())
     targets = targets[:1] + [targets[i] for i in nearest[:PREALIGN_REFERENCES]]
-    axes_s = np.linalg.eigh(ms)[1]
 
     cache = {}
 
@@ -160,7 +159,8 @@ def prealign_candidates(template_verts, template_faces, scan_verts, scan_faces, 
         if sigma not in cache:
             cache[sigma] = coarse_measure(zs, sf, scan_face_weights, cell)
         if (i, sigma) not in cache:
-            cache[i, sigma] = CoarseVarifold(coarse_measure(targets[i][2], tf, None, cell), cache[sigma], sigma)
+            ct, rho_t, verts = targets[i][:3]
+            cache[i, sigma] = CoarseVarifold(coarse_measure((verts - ct) / rho_t, tf, None, cell), cache[sigma], sigma)
         return cache[i, sigma]
 
     zero = torch.zeros(7, dtype=torch.float64)
