@@ -1,6 +1,8 @@
 """Speed, accuracy and memory of the varifold backends at the paper's scale.
 
-    python bench/varifold_speed.py            # writes bench/out/varifold_speed.md
+    python bench/varifold_speed.py                 # CPU backends (and CUDA ones if a GPU is seen)
+    python bench/varifold_speed.py --device cuda   # the GPU backends only
+    # both write bench/out/varifold_speed[_cuda].md
 
 Source: the DFAUST body template (13,776 faces) scaled to 1.7 m. Targets of ~55k faces:
 (a) face-reference.ply rescaled to the body's size (as in the issue), (b) a "scan" of the body
@@ -9,6 +11,7 @@ registration. sigma = 0.025 (the paper's finest scale), float64, value + gradien
 source vertices. Data: ../shared/data (override with BAREESA_SHARED=/path/to/shared).
 """
 
+import argparse
 import json
 import os
 import resource
@@ -164,6 +167,13 @@ def memory_child(which, data_dir):
 def main():
     if len(sys.argv) == 3 and sys.argv[1] == "--memory-child":
         return memory_child(sys.argv[2], shared_data())
+    parser = argparse.ArgumentParser(description="Speed of the varifold backends at the paper's scale.")
+    parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"),
+                        help="cpu: the CPU backends, the CPU memory table, and the CUDA backends when a GPU "
+                             "is seen (default); cuda: the CUDA backends alone")
+    args = parser.parse_args()
+    if args.device == "cuda" and not torch.cuda.is_available():
+        sys.exit("varifold_speed: --device cuda, but torch sees no CUDA device")
     data = shared_data()
     torch.manual_seed(0)
     vs, fs = body(data)
@@ -176,7 +186,7 @@ def main():
     rows = []
     cpu_backends = [("keops (dense)", "keops", True), ("truncated (keops ranges)", "truncated", True),
                     ("truncated (torch tiles)", "truncated", False)]
-    for name, (vt, ft) in targets.items():
+    for name, (vt, ft) in targets.items() if args.device == "cpu" else ():
         run_case(name, vs, fs, vt, ft, "cpu", cpu_backends, rows)
         est_loss, est_one = dense_torch_estimate(vs, fs, vt, ft)
         rows.append({"case": name, "device": "cpu", "backend": "dense torch (estimated)",
@@ -186,11 +196,13 @@ def main():
         print(json.dumps(rows[-1]), flush=True)
     if torch.cuda.is_available():
         for name, (vt, ft) in targets.items():
+            # KeOps first (the reference of the speed-ups) when it compiles for CUDA here; dense torch
+            # (what "auto" picks on a GPU without pykeops) beside it
+            keops = [("keops (dense)", "keops", True), ("truncated (keops ranges)", "truncated", True)]
             run_case(name, vs, fs, vt, ft, "cuda",
-                     [("keops (dense)", "keops", True), ("truncated (keops ranges)", "truncated", True)],
-                     rows)
+                     (keops if V.kernels.keops_available() else []) + [("dense torch", "dense", False)], rows)
     mem = []
-    for which in ("keops", "torch"):
+    for which in ("keops", "torch") if args.device == "cpu" else ():
         out = subprocess.run([sys.executable, __file__, "--memory-child", which],
                              capture_output=True, text=True)
         line = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
@@ -200,7 +212,8 @@ def main():
     md = ["# Varifold backends at the paper's scale", "",
           f"Source: body template, {fs.shape[0]} faces, height 1.7 m. sigma = {SIGMA}, "
           f"cutoff = {V.default_cutoff(SIGMA):.4f} (tol 1e-6), float64, value + gradient w.r.t. "
-          f"the source vertices, {torch.get_num_threads()} CPU threads. Times in seconds: first call "
+          f"the source vertices, {torch.get_num_threads()} CPU threads"
+          + (f", GPU {torch.cuda.get_device_name()}" if torch.cuda.is_available() else "") + ". Times in seconds: first call "
           "(includes any KeOps compile) / median of 3 warm calls (1 for the dense-KeOps one-shot), wall-clock and CPU seconds (process_time over all threads; robust to other jobs sharing the 2 cores, which happened during this run). 'one-shot' = varifold_distance "
           "(recomputes the target self term); 'loss' = VarifoldLoss call (target self term cached). "
           "Speed-up and errors are relative to dense KeOps on the same device.", "",
@@ -221,11 +234,12 @@ def main():
                   f"{f('rel_err_grad', '{:.1e}')} | "
                   + ("-" if est else f"{r['pairs_per_call'] / 1e6:.1f}M of {r['all_pairs'] / 1e6:.0f}M") + " |")
     md += ["", "dense torch: extrapolated from a 3,000-face subsample of the target "
-           "(time per pair x number of pairs).", "",
-           "Peak memory (ru_maxrss of a fresh process: load, build VarifoldLoss, one value+gradient "
-           "call) of the truncated backend against a 220k-face scan (body subdivided twice):", "",
-           "| truncated via | target faces | peak RSS (MB) | RSS before (MB) | build + call (s) |",
-           "|---|---|---|---|---|"]
+           "(time per pair x number of pairs)."]
+    if mem:
+        md += ["", "Peak memory (ru_maxrss of a fresh process: load, build VarifoldLoss, one value+gradient "
+               "call) of the truncated backend against a 220k-face scan (body subdivided twice):", "",
+               "| truncated via | target faces | peak RSS (MB) | RSS before (MB) | build + call (s) |",
+               "|---|---|---|---|---|"]
     for which, m in mem:
         if "error" in m:
             md.append(f"| {which} | error: {m['error'][-200:]!r} | | | |")
@@ -236,7 +250,7 @@ def main():
     print(text)
     out = ROOT / "bench" / "out"
     out.mkdir(parents=True, exist_ok=True)
-    (out / "varifold_speed.md").write_text(text)
+    (out / ("varifold_speed.md" if args.device == "cpu" else "varifold_speed_cuda.md")).write_text(text)
 
 
 if __name__ == "__main__":

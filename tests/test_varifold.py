@@ -342,3 +342,11 @@ def test_binned_loss_with_one_face_per_cell_is_the_face_loss(kernel):
     d0, d1 = VarifoldLoss(w, g, SIGMA, kernel=kernel, backend="dense")(v, f), binned(v, f)
     (g0,), (g1,) = torch.autograd.grad(d0, v), torch.autograd.grad(d1, v)
     assert torch.isclose(d1, d0, rtol=1e-10, atol=0) and float((g1 - g0).norm() / g0.norm()) < 1e-10
+
+
+def test_keops_can_be_turned_off_from_the_environment(monkeypatch):
+    """BAREESA_NO_KEOPS=1 (for a GPU where KeOps' compiled code crashes): "auto" never picks KeOps."""
+    monkeypatch.setattr(V.kernels, "_KEOPS", None)
+    monkeypatch.setenv(V.kernels.NO_KEOPS_ENV, "1")
+    assert not V.keops_available()
+    assert V.kernels.choose_backend(100, 100, SIGMA, 1.0, "cuda") == "dense"

@@ -95,13 +95,13 @@ def geodesic(template, faces, fields, alpha0, alpha1, weights, steps=10, max_ite
         return torch.cat([ends[:1], inner + r_inv_t @ z.reshape(steps - 2, p) @ b_t, ends[1:]])
 
     def energy(z):
-        return latent_path_energy(template, faces, fields, path_of(z.to(template.dtype)), weights)
+        return latent_path_energy(template, faces, fields, path_of(z.to(template)), weights)
 
     monitor.report(0.0, "geodesic")
     z, value, nit = minimize_lbfgs(energy, z0.ravel(), monitor, max_iter=max_iter, message="geodesic",
                                    ftol=GEODESIC_FTOL, plateau=plateau)
     with torch.no_grad():
-        path = path_of(torch.from_numpy(z).to(template.dtype)).double().cpu().numpy()
+        path = path_of(torch.from_numpy(z).to(template)).double().cpu().numpy()
     path[0], path[-1] = alpha0, alpha1
     monitor.report(1.0, "geodesic done", value)
     return Geodesic(path=path, energy=value, distance=float(np.sqrt(max(value, 0.0))), iterations=nit)

@@ -3,6 +3,7 @@
 import contextlib
 import io
 import math
+import os
 
 import torch
 
@@ -18,11 +19,17 @@ DENSE_MAX_PAIRS = 2e7
 
 #: Whether pykeops imports (None: not tried yet); set it to False to force the torch code paths.
 _KEOPS = None
+#: Environment variable that turns KeOps off ("1"): for a machine where its compiled code crashes
+#: (a crash cannot be caught; seen with pykeops 2.3 on a CUDA 13 GPU).
+NO_KEOPS_ENV = "BAREESA_NO_KEOPS"
 
 
 def keops_available():
-    """True when pykeops imports (its LazyTensor is then used by "keops" and "truncated")."""
+    """True when pykeops imports (its LazyTensor is then used by "keops" and "truncated"), unless
+    ``$BAREESA_NO_KEOPS`` is 1."""
     global _KEOPS
+    if _KEOPS is None and os.environ.get(NO_KEOPS_ENV, "") == "1":
+        _KEOPS = False
     if _KEOPS is None:
         try:
             # KeOps prints its banner and compile messages on stdout, which would corrupt
