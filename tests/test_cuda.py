@@ -6,21 +6,9 @@ import pytest
 import torch
 
 from bareesa import synthetic, workflows
-from bareesa.statistics import fit_distribution
+from tests.test_workflows import A, B, sphere  # noqa: F401 (sphere: the basis fixture)
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
-
-A = np.array([0.2, -0.3, 0.4, 0.1])
-B = np.array([-0.5, 0.6, 0.1, 0.7])
-
-
-@pytest.fixture(scope="module")
-def sphere():
-    basis, surface = synthetic.smooth_sphere_basis(subdivisions=1, n_fields=4, seed=0)
-    rng = np.random.default_rng(0)
-    basis.extras.update(fit_distribution(0.5 * rng.normal(size=(12, 4)), basis.groups,
-                                         {g: 1 for g in basis.groups}, seed=0))
-    return basis, surface
 
 
 def both(run, **options):

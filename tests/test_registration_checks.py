@@ -109,7 +109,8 @@ def test_prealignment_scale_stays_bounded_and_finite_on_a_scan_with_far_clutter(
 
 def test_a_poor_fit_is_registered_again_from_other_alignments(basis, monkeypatch):
     """Started only from the right alignment turned half a turn, the fit is poor; the retry from the
-    half turns of that fit finds the right one (a human scan registered facing backwards, in miniature)."""
+    half turns of that fit finds the right one (a human scan registered facing backwards, in miniature),
+    having screened each of them deeper and ranked them by the fit residual."""
     from bareesa.latent import Level
 
     schedule = (Level(0.25, 1e3, 1, 10), Level(0.1, 1e5, 1, 10))
@@ -121,6 +122,22 @@ def test_a_poor_fit_is_registered_again_from_other_alignments(basis, monkeypatch
     flips = multiscale.half_turns(basis)
     assert all(np.allclose(f.compose(f).rotation, np.eye(3)) for f in flips)
     basis.fit_check = {"poor_fit_above": 2 * right.residual}
+    residuals, screens = [], []
+    real_residual, real_deep = multiscale._residual, multiscale._deep_screen
+
+    def residual_spy(*args):
+        out = real_residual(*args)
+        residuals.append(out[1])
+        return out
+
+    def deep_spy(*args):
+        residuals.clear()
+        out = real_deep(*args)
+        screens.append((list(residuals), out, len(args[6])))  # args[6]: the candidates
+        return out
+
+    monkeypatch.setattr(multiscale, "_residual", residual_spy)
+    monkeypatch.setattr(multiscale, "_deep_screen", deep_spy)
     try:
         for flip in flips:
             wrong_start = [multiscale.Alignment(0.0, flip.compose(right.transform))]
@@ -128,7 +145,11 @@ def test_a_poor_fit_is_registered_again_from_other_alignments(basis, monkeypatch
             once = registration.register(basis, scan, faces, schedule=schedule, retry=False)
             if not once.poor_fit:
                 continue  # this half turn is a symmetry of the scan: nothing to retry
+            assert not screens  # the first fit screens as usual
             again = registration.register(basis, scan, faces, schedule=schedule)
+            (screened, (_, _, _, order, best), n_candidates), = screens
+            assert len(screened) == n_candidates == again.retried_alignments
+            assert list(order) == list(np.argsort(screened)) and best == int(np.argmin(screened))
             assert once.retried_alignments == 0 and again.retried_alignments >= 3
             assert again.poor_fit is False and again.to_json()["retried_alignments"] == again.retried_alignments
             assert again.residual < 0.5 * once.residual and again.residual < 1.5 * right.residual

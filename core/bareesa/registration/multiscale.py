@@ -10,7 +10,8 @@ the template's), and a candidate found against a prototype is screened from the 
 prototype's code (``_start``). A fit that is
 still poor (``is_poor_fit``; most often a body registered facing backwards) is registered again from
 the other screened alignments and from itself turned half a turn about each of the template's
-principal axes (``half_turns``), and the better of the two is kept.
+principal axes (``half_turns``), each screened deeper (the whole first level and RETRY_SECOND_ITER
+iterations of the second, ranked by the fit residual), and the better of the two fits is kept.
 """
 
 import math
@@ -38,6 +39,11 @@ SCREEN_DIVISOR = 8          # candidate alignments are screened with 1/8 of the 
 SCREEN_FINALISTS = 2        # the best screened alignments get a short second level, which decides: at the
 SCREEN_SECOND_ITER = 5      # first level's sigma a body is nearly front/back symmetric...
 SCREEN_TIE = 1.5            # ... when the second best scored within this factor of the best
+#: A poor fit's retry screens each other alignment deeper: the whole first level, then this many
+#: iterations of the second, ranked by the fit residual. The short screening's objectives rank a body
+#: facing backwards first on some scans (2 of 40 held-out `human` scans); after 30 second-level
+#: iterations the right alignment has the smallest residual on both (bench/README).
+RETRY_SECOND_ITER = 30
 PREALIGN_FRACTION = 0.1     # share of the progress bar given to the pre-alignment
 #: "auto" registers the finest level with the oriented linear kernel when the scan's normal spread
 #: (``problem.normal_spread``) is above this, else with binet: the spread biases binet's minimiser
@@ -301,7 +307,7 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
         others += [Alignment(0.0, flip.compose(fit["transform"])) for flip in half_turns(basis)]
         monitor.report(lo, f"registration: poor fit (residual {fit['residual']:.3g}), retrying from "
                            f"{len(others)} other alignments")
-        again = _fit(problem, basis, levels, kernels, poses, path, others, used, monitor, lo)
+        again = _fit(problem, basis, levels, kernels, poses, path, others, used, monitor, lo, deep=True)
         retried = len(others)
         if again["residual"] < fit["residual"]:
             fit = again
@@ -331,17 +337,36 @@ def _start(path, poses, alignment):
     return np.stack([np.zeros_like(path[-1]), poses[alignment.reference]])
 
 
-def _fit(problem, basis, levels, kernels, poses, path, candidates, used, monitor, lo):
+def _level_name(k, n_levels):
+    """The progress message of level k (0-based) of n_levels."""
+    return f"registration level {k + 1}/{n_levels}"
+
+
+def _residual(basis, path, transform, used):
+    """The registered vertices (N, 3) in the scan's frame and their ``fit_residual``."""
+    vertices = transform.invert(basis.template + np.tensordot(path[-1], basis.fields, axes=1))
+    return vertices, fit_residual(basis, vertices, used, transform)
+
+
+def _fit(problem, basis, levels, kernels, poses, path, candidates, used, monitor, lo, deep=False):
     """Every level from the best of candidate alignments [Alignment] (screened, see the module
-    docstring): -> {path, transform, vertices, levels, initial, residual, poor, order, best}."""
+    docstring; deep: each screened with the whole first level and RETRY_SECOND_ITER iterations of the
+    second, ranked by the fit residual): -> {path, transform, vertices, levels, initial, residual,
+    poor, order, best}."""
+    deep = deep and len(candidates) > 1 and len(levels) > 1
     # progress: the first level is tried from every candidate alignment
     budget = np.array([lv.steps * lv.max_iter for lv in levels], dtype=np.float64)
-    budget[0] *= 1 + (len(candidates) / SCREEN_DIVISOR if len(candidates) > 1 else 0)
-    tries_poses = poses is not None and len(levels) > 1
-    if tries_poses:
+    if deep:
+        budget[0] = len(candidates) * (budget[0] + levels[1].steps * RETRY_SECOND_ITER)
+    else:
+        budget[0] *= 1 + (len(candidates) / SCREEN_DIVISOR if len(candidates) > 1 else 0)
+    if poses is not None and len(levels) > 1:
         budget[1] += (POSE_FINALISTS + 1) * levels[1].steps * POSE_ITER
     bounds = lo + (1 - lo) * np.concatenate([[0.0], np.cumsum(budget) / budget.sum()])
-    name = lambda k: f"registration level {k + 1}/{len(levels)}"  # noqa: E731
+    if deep:
+        return _rest(problem, basis, levels, kernels, poses, candidates, used, monitor, bounds,
+                     _deep_screen(problem, basis, levels, kernels, poses, path, candidates, used, bounds[:2]))
+    name = lambda k: _level_name(k, len(levels))  # noqa: E731
     # screen every candidate alignment with a short first level; only the best one gets the full level
     screen = levels[0] if len(candidates) == 1 else replace(levels[0], steps=1,
                                                             max_iter=max(10, levels[0].max_iter // SCREEN_DIVISOR))
@@ -367,12 +392,43 @@ def _fit(problem, basis, levels, kernels, poses, path, candidates, used, monitor
                                           kernels[1], orient=True) for j in finalists]
             k = int(np.argmin([problem.screen_score(levels[1], p[-1], t, r["energy"]) for p, t, r in second]))
             best, resume = finalists[k], second[k]  # the second level goes on from the winner's short one
-    (path, transform, first), initial = tries[best], candidates[best].transform
+    path, transform, first = tries[best]
     if resume is not None:
         path, transform = resume[0], resume[1]
     elif screen is not levels[0]:
         path, transform, first = problem.solve_level(levels[0], path, transform, (mid, bounds[1]), name(0),
                                                      kernels[0])
+    return _rest(problem, basis, levels, kernels, poses, candidates, used, monitor, bounds,
+                 (path, transform, first, order, best))
+
+
+def _deep_screen(problem, basis, levels, kernels, poses, path, candidates, used, span):
+    """The whole first level and RETRY_SECOND_ITER second-level iterations from each candidate, ranked
+    by the fit residual: -> (path, transform, first-level report, order, best) of the best."""
+    short = replace(levels[1], max_iter=RETRY_SECOND_ITER)
+    step = (span[1] - span[0]) / len(candidates)
+    tries, residuals = [], []
+    for j, candidate in enumerate(candidates):
+        a, m, b = span[0] + j * step, span[0] + (j + 0.7) * step, span[0] + (j + 1) * step
+        label = f" (alignment {j + 1}/{len(candidates)}, retry)"
+        p, t, first = problem.solve_level(levels[0], _start(path, poses, candidate), candidate.transform, (a, m),
+                                          _level_name(0, len(levels)) + label, kernels[0])
+        p, t, _ = problem.solve_level(short, p, t, (m, b), _level_name(1, len(levels)) + label,
+                                      kernels[1], orient=True)
+        tries.append((p, t, first))
+        residuals.append(_residual(basis, p, t, used)[1])
+    order = np.argsort(residuals)
+    best = int(order[0])
+    return (*tries[best], order, best)
+
+
+def _rest(problem, basis, levels, kernels, poses, candidates, used, monitor, bounds, start):
+    """The levels after the first from start = (path, transform, first-level report, order, best):
+    -> ``_fit``'s dict."""
+    path, transform, first, order, best = start
+    initial = candidates[best].transform
+    name = lambda k: _level_name(k, len(levels))  # noqa: E731
+    tries_poses = poses is not None and len(levels) > 1
     report = [first]
     monitor.report(bounds[1], f"{name(0)} done", first["objective"])
     for k in range(1, len(levels)):
@@ -386,8 +442,7 @@ def _fit(problem, basis, levels, kernels, poses, path, candidates, used, monitor
         report.append(lv_report)
         monitor.report(bounds[k + 1], f"{name(k)} done", lv_report["objective"])
 
-    vertices = transform.invert(basis.template + np.tensordot(path[-1], basis.fields, axes=1))
-    residual = fit_residual(basis, vertices, used, transform)
+    vertices, residual = _residual(basis, path, transform, used)
     return {"path": path, "transform": transform, "vertices": vertices, "levels": report, "initial": initial,
             "residual": residual,
             "poor": is_poor_fit(basis, residual), "order": [int(j) for j in order], "best": best}
