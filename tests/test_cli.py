@@ -377,3 +377,34 @@ def test_extrapolate_that_cannot_be_shot_names_the_frame_and_writes_nothing(caps
                      "-o", tmp / "refused")
     assert rc == 2 and " of 6: " in err and "frame" in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp / "refused").exists()
+
+
+@pytest.mark.parametrize("device, message", [("cuda:99", "cuda:99"), ("tpu", "'tpu'")])
+def test_solving_verbs_refuse_a_device_torch_does_not_have_and_write_nothing(capsys, built, device, message):
+    tmp, out, seqs = built
+    a, b = seqs["bend"][0], seqs["bend"][1]
+    for argv in (["interpolate", a, b, "--steps", "3", "-o", tmp / "dev"],
+                 ["extrapolate", a, b, "--steps", "2", "-o", tmp / "dev"],
+                 ["distance", a, b],
+                 ["register", a, "-o", tmp / "dev" / "r.ply"],
+                 ["register-batch", a, "-o", tmp / "dev"],
+                 ["transfer", a, b, "--identity", b, "-o", tmp / "dev"],
+                 ["sample", "-n", "1", "-o", tmp / "dev"]):
+        rc, _, err = run(capsys, *argv, "--basis", out, "--device", device)
+        assert rc == 2 and message in err and len(err.strip().splitlines()) == 1, (argv[0], err)
+        assert not (tmp / "dev").exists()
+
+
+def test_the_device_of_the_command_line_reaches_the_workflows(capsys, built, monkeypatch):
+    """--device is checked, then handed to the solver in workflows.Options (a pretend GPU here)."""
+    tmp, out, seqs = built
+    seen = []
+    monkeypatch.setattr(cli, "check_device", lambda device: seen.append(device) or device)
+
+    def path_between(basis, a, b, n_frames, options, **kwargs):
+        seen.append(options.device)
+        raise cli.InputError("stop here")
+
+    monkeypatch.setattr(cli, "path_between", path_between)
+    rc, _, err = run(capsys, "interpolate", *seqs["bend"][:2], "--basis", out, "-o", tmp / "x", "--device", "cuda:3")
+    assert rc == 2 and "stop here" in err and seen == ["cuda:3", "cuda:3"]

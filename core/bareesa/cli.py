@@ -27,8 +27,17 @@ from .mesh import load_mesh, save_mesh, validate_mesh
 from .progress import tqdm_callback
 from .scan_simulator import add_simulate_scan_arguments, apply_similarity, simulate_scan, simulate_scan_cli
 from .statistics import fit_training_distribution, pose_prototypes, sample_velocities
-from .workflows import (KnownCode, Options, Scan, code_of, extrapolate, geodesic_between, mesh_input, path_between,
-                        random_bodies, stored_distribution, transfer)
+from .workflows import (KnownCode, Options, Scan, check_device, code_of, extrapolate, geodesic_between, mesh_input,
+                        path_between, random_bodies, stored_distribution, transfer)
+
+
+def _options(args, **kwargs):
+    """The workflows.Options of a verb: its --device (checked) and the given fields."""
+    return Options(device=check_device(args.device), **kwargs)
+
+
+def _add_device(p):
+    p.add_argument("--device", default="cpu", help="where the solver runs: cpu (default), cuda or cuda:N")
 
 
 def _print(result, as_json, title=None):
@@ -170,8 +179,9 @@ def _basis_and_pair(args, min_steps=None):
 def cmd_distance(args):
     """Geodesic distance between two meshes in the latent space of a basis."""
     start = time.perf_counter()
+    options = _options(args, steps=10)
     basis, a, b = _basis_and_pair(args)
-    found = geodesic_between(basis, a, b, Options(steps=10))
+    found = geodesic_between(basis, a, b, options)
     _print({"distance": found.distance, "seconds": time.perf_counter() - start}, args.json)
 
 
@@ -188,8 +198,9 @@ def _detail_report(ends, detail):
 def cmd_interpolate(args):
     """Evenly paced geodesic in-betweens of two meshes, written as T meshes and their codes."""
     start = time.perf_counter()
+    options = _options(args)
     basis, a, b = _basis_and_pair(args, min_steps=2)
-    found = path_between(basis, a, b, args.steps, Options(), anchor=not args.no_anchor,
+    found = path_between(basis, a, b, args.steps, options, anchor=not args.no_anchor,
                          keep_detail=not args.no_detail)
     seconds = time.perf_counter() - start
     _write_frames(args.output, basis, found.frames, detail=found.detail)
@@ -214,8 +225,10 @@ def _write_frames(output, basis, codes, prefix="frame", detail=None):
 def cmd_extrapolate(args):
     """Continue the motion A -> B along the latent geodesic by T frames."""
     start = time.perf_counter()
+    options = _options(args)
     basis, a, b = _basis_and_pair(args, min_steps=1)
-    motion = extrapolate(basis, a, b, args.steps, anchor=not args.no_anchor, keep_detail=not args.no_detail)
+    motion = extrapolate(basis, a, b, args.steps, options, anchor=not args.no_anchor,
+                         keep_detail=not args.no_detail)
     _write_frames(args.output, basis, motion.path, detail=motion.detail)
     # where a step did not converge, shooting refined time (shooting.ShootingReport): say where
     refined = {"shooting": motion.shooting.to_json()} if args.json else {
@@ -230,9 +243,10 @@ def cmd_extrapolate(args):
 
 def cmd_transfer(args):
     """Put the motion of the given frames on another identity (swap the identity group)."""
+    options = _options(args)
     basis = load_basis(args.basis)
     frames = [_load_input(basis, p) for p in args.frames]
-    out = transfer(basis, frames, _load_input(basis, args.identity), args.group).motion
+    out = transfer(basis, frames, _load_input(basis, args.identity), args.group, options).motion
     _write_frames(args.output, basis, out)
     _print({"frames": len(out), "output": str(args.output)}, args.json, "motion transfer")
 
@@ -241,11 +255,12 @@ def cmd_sample(args):
     """Random shapes: Gaussian mixture on initial velocities at the template, then shoot."""
     if args.n < 1:
         raise InputError(f"-n must be at least 1, got {args.n}")
+    options = _options(args)
     basis = load_basis(args.basis)
     fit = [_load_input(basis, p) for p in args.fit] if args.fit else None
     if fit is None and not stored_distribution(basis):
         raise InputError(f"basis '{basis.name}' carries no fitted distribution: give --fit FILES")
-    bodies = random_bodies(basis, args.n, args.seed, fit=fit, components=args.components)
+    bodies = random_bodies(basis, args.n, args.seed, options, fit=fit, components=args.components)
     _write_frames(args.output, basis, bodies.codes, prefix="sample")
     # draws that could not be shot or creased a joint flat were replaced by further draws (workflows.sample_bodies)
     _print({"samples": args.n, "seed": args.seed, "replaced": bodies.replaced, "output": str(args.output)},
@@ -254,14 +269,14 @@ def cmd_sample(args):
 
 def cmd_register(args):
     """Latent code of a raw scan; writes the registered mesh (template topology, scan's frame)."""
+    options = _options(args, kernel=args.kernel)
     basis = load_basis(args.basis)
     verts, faces = load_mesh(args.scan)
     validate_mesh(verts, faces, name=str(args.scan))
     landmarks = read_scan_landmarks(args.landmarks, basis) if args.landmarks else None
     callback, close = tqdm_callback("register", disable=args.json or None)
     try:
-        res = code_of(basis, Scan(verts, faces, landmarks=landmarks), Options(kernel=args.kernel),
-                      callback=callback).registration
+        res = code_of(basis, Scan(verts, faces, landmarks=landmarks), options, callback=callback).registration
     finally:
         close()
     save_mesh(args.output, res.vertices, basis.faces)
@@ -301,8 +316,10 @@ def cmd_register_batch(args):
                   for p in (Path(ln) for ln in lines if ln and not ln.startswith("#"))]
     if args.chunk is not None and not args.sequence:
         raise InputError("--chunk only applies with --sequence")
+    device = check_device(args.device)
     report = register_batch(args.basis, scans, args.output, workers=args.workers,
                             threads_per_worker=args.threads_per_worker, scheduler=args.scheduler,
+                            options=None if device == "cpu" else {"device": device},
                             sequence=args.sequence, chunk=args.chunk, progress=not args.json,
                             log=lambda text: print(text, file=sys.stderr))
     if args.json:
@@ -382,6 +399,7 @@ def _pair_parser(sub, name, func, text, frames=None):
         p.add_argument("--no-anchor", action="store_true", help=anchor)
         p.add_argument("--no-detail", action="store_true", help=detail)
         p.add_argument("-o", "--output", type=Path, required=True)
+    _add_device(p)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=func)
 
@@ -418,6 +436,7 @@ def build_parser():
     p.add_argument("--kernel", default="auto", choices=("auto", "binet", "linear"),
                    help="varifold kernel: auto (default) is binet, and linear at the finest level of a noisy scan "
                         "(its faces wound consistently first); binet or linear on every level")
+    _add_device(p)
     p.add_argument("--json", action="store_true", help="print JSON (code, varifold, chamfer, seconds, levels)")
     p.set_defaults(func=cmd_register)
 
@@ -433,6 +452,8 @@ def build_parser():
     p.add_argument("--sequence", action="store_true",
                    help="the scans are the frames of one 4D capture, in order: warm start each from the previous")
     p.add_argument("--chunk", type=int, metavar="K", help="with --sequence: frames per chunk run in parallel")
+    p.add_argument("--device", default="cpu",
+                   help="where the workers solve: cpu (default), cuda or cuda:N (then one worker per GPU)")
     p.add_argument("--json", action="store_true", help="print JSON (counts, seams, a row per scan)")
     p.set_defaults(func=cmd_register_batch)
 
@@ -474,6 +495,7 @@ def build_parser():
     p.add_argument("--group", default="shape", help="the identity group of the basis (default: shape)")
     p.add_argument("--basis", default=DEFAULT_BASIS, help=f"bundled basis name or .npz path (default: {DEFAULT_BASIS})")
     p.add_argument("-o", "--output", type=Path, required=True)
+    _add_device(p)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_transfer)
 
@@ -484,6 +506,7 @@ def build_parser():
     p.add_argument("--components", type=int, default=3, help="mixture components per group with --fit")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-o", "--output", type=Path, required=True)
+    _add_device(p)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_sample)
 

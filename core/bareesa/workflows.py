@@ -97,6 +97,25 @@ class Options:
 # ------------------------------------------------------------------------------------ codes
 
 
+def check_device(device):
+    """A torch device name the solvers can use here ("cpu", "cuda", "cuda:1"): -> the name; InputError
+    (one line) when torch does not know it or sees no such GPU."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise InputError(f"unknown device {device!r}: use cpu, cuda or cuda:N") from None
+    if dev.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise InputError(f"device {device!r}: this torch sees no CUDA GPU (a CPU-only build, or no driver); "
+                             "use cpu")
+        if dev.index is not None and dev.index >= count:
+            raise InputError(f"device {device!r}: this machine has {count} CUDA GPU(s) (cuda:0-{count - 1})")
+    elif dev.type != "cpu":
+        raise InputError(f"device {device!r}: the solver runs on cpu or cuda")
+    return str(device)
+
+
 @dataclass
 class MatchedEnd:
     """One end of a symmetric matching, as a registration gives it: code (P,), transform (scan ->
