@@ -316,7 +316,8 @@ def cmd_register_batch(args):
                   for p in (Path(ln) for ln in lines if ln and not ln.startswith("#"))]
     if args.chunk is not None and not args.sequence:
         raise InputError("--chunk only applies with --sequence")
-    device = check_device(args.device)
+    # a remote cluster's workers may have GPUs this machine lacks: there the workers' torch decides
+    device = args.device if args.scheduler else check_device(args.device)
     report = register_batch(args.basis, scans, args.output, workers=args.workers,
                             threads_per_worker=args.threads_per_worker, scheduler=args.scheduler,
                             options=None if device == "cpu" else {"device": device},
