@@ -1,10 +1,12 @@
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
 
 from bareesa import basis_io, geodesics, latent, registration, synthetic
 from bareesa.errors import InputError, SolveCancelled
-from bareesa.progress import CancelToken
+from bareesa.progress import CancelToken, Monitor
 from tests.test_latent import small_basis
 
 
@@ -184,15 +186,21 @@ def test_anchored_geodesic_of_the_bundled_humanoid_keeps_the_feet_on_the_floor()
     assert sink(geodesics.anchor_path(t, h, g.path, line)).max() < 0.005
 
 
-def test_symmetric_matching_of_two_raw_scans_recovers_codes_and_geodesic():
+def _two_sphere_scans(seed=2):
+    """A sphere basis, two codes and their surfaces remeshed differently, in one common (rotated, scaled)
+    frame: -> basis, surface, codes (2, 6), rotation, scans [(verts, faces)] * 2."""
     basis, surface = synthetic.smooth_sphere_basis(subdivisions=2, n_fields=6, seed=0)
-    rng = np.random.default_rng(2)
-    codes = 0.7 * rng.normal(size=(2, 6))
+    codes = 0.7 * np.random.default_rng(seed).normal(size=(2, 6))
     rot = synthetic.random_rotation(9)
     scans = []
-    for k, c in enumerate(codes):  # both scans remeshed differently, in one common (rotated, scaled) frame
+    for k, c in enumerate(codes):
         u, faces = synthetic.resampled_sphere(2, seed=10 + k)
         scans.append((2.0 * surface(u, c) @ rot.T + [1.0, 0.0, -2.0], faces))
+    return basis, surface, codes, rot, scans
+
+
+def test_symmetric_matching_of_two_raw_scans_recovers_codes_and_geodesic():
+    basis, surface, codes, rot, scans = _two_sphere_scans()
     events = []
     m = registration.symmetric_match(basis, scans[0], scans[1], steps=5, callback=events.append)
     assert np.abs(m.path[0] - codes[0]).max() < 0.03 * np.abs(codes).max()
@@ -207,3 +215,20 @@ def test_symmetric_matching_of_two_raw_scans_recovers_codes_and_geodesic():
         assert np.abs(e - tr).max() < 0.03 * np.abs(tr).max()
     fractions = [e.fraction for e in events]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
+
+
+def test_symmetric_matchings_joint_solve_moves_the_ends_and_the_path_with_them():
+    """Started from registrations whose codes are off, the joint solve brings the ends back onto their scans
+    and its interior is the geodesic between the ends it returns (the path converged, not only the ends)."""
+    basis, _, codes, _, scans = _two_sphere_scans(seed=5)
+    regs = [registration.register(basis, *scan) for scan in scans]
+    rng = np.random.default_rng(0)
+    off = [dataclasses.replace(r, code=r.code + 0.3 * rng.normal(size=r.code.shape)) for r in regs]
+    path, energy, gammas = registration.symmetric.match_registered(basis, scans, off, 6, basis.schedule[-1],
+                                                                   basis.weights, Monitor("test"))
+    for end, r in zip(path[[0, -1]], regs):
+        assert np.abs(end - r.code).max() < 0.1 * 0.3
+    t, f, h = basis.tensors()
+    between = geodesics.geodesic(t, f, h, path[0], path[-1], basis.weights, steps=6)
+    assert energy == pytest.approx(between.energy, rel=0.01)
+    assert max(gammas) < 2 * max(r.varifold for r in regs)

@@ -167,6 +167,18 @@ def _normal_gram(verts, faces, fields):
     return (hn * area) @ hn.T
 
 
+def end_whitening(gram, template, faces, fields, weight, code):
+    """Whitening (P, P) of an end code fitted with weight * Gamma, about code (P,): of G-bar + 4 pi weight N.
+
+    gram (P, P) the latent metric G-bar; template (N, 3), faces (F, 3), fields (P, N, 3) numpy. The
+    varifold of a surface offset by d along its normals is ~ 2 pi int d^2 (any sigma), so weight * Gamma
+    has Hessian ~ 4 pi weight N in the code (N = ``_normal_gram``) next to G-bar; N is taken at F(code),
+    where the solve starts, not at the template: a body in a pose the pose stage found has its limbs'
+    normals elsewhere (a random body's finest level: 97 -> 62 iterations)."""
+    start = template + np.tensordot(code, fields, axes=1)
+    return whitening(gram + 4 * math.pi * weight * _normal_gram(start, faces, fields))
+
+
 class RegistrationProblem:
     """The constant parts of a registration (template tensors, scan, landmarks) and one level's solve."""
 
@@ -344,13 +356,7 @@ class RegistrationProblem:
             terms.update(energy=energy, gamma=gamma)
             return level.weight * fit + energy
 
-        # the varifold of a surface offset by d along its normals is ~ 2 pi int d^2 (any sigma), so
-        # weight * Gamma has Hessian ~ 4 pi weight N in the code (N = ``_normal_gram``) next to G-bar;
-        # N is taken at the level's start F(path[-1]), not at the template: a body in a pose the pose
-        # stage found has its limbs' normals elsewhere (a random body's finest level: 97 -> 62 iterations)
-        start = self.template_np + np.tensordot(path[-1], self.fields_np, axes=1)
-        normal = _normal_gram(start, self.faces_np, self.fields_np)
-        whiten_end = whitening(self.gram + 4 * math.pi * level.weight * normal)
+        whiten_end = end_whitening(self.gram, self.template_np, self.faces_np, self.fields_np, level.weight, path[-1])
         variables = PathVariables(steps, whiten_end, self.whiten)
         # similarity variables scaled so that a unit step moves the surface about as much as a
         # unit step of the (whitened) end code: a well-conditioned joint problem
