@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from bareesa import basis_io, geodesics, latent, registration, synthetic
+from bareesa import basis_io, geodesics, h2_metric, latent, registration, synthetic
 from bareesa.errors import InputError, SolveCancelled
 from bareesa.progress import CancelToken, Monitor
 from tests.test_latent import small_basis
@@ -232,3 +232,20 @@ def test_symmetric_matchings_joint_solve_moves_the_ends_and_the_path_with_them()
     between = geodesics.geodesic(t, f, h, path[0], path[-1], basis.weights, steps=6)
     assert energy == pytest.approx(between.energy, rel=0.01)
     assert max(gammas) < 2 * max(r.varifold for r in regs)
+
+
+def test_geodesics_default_preconditioner_is_the_metric_at_the_mean_code():
+    basis, _ = synthetic.smooth_sphere_basis(subdivisions=2, n_fields=6, seed=0)
+    t, f, h = basis.tensors()
+    a, b = 0.5 * np.ones(6), -0.3 * np.arange(6)
+    gram = geodesics.midpoint_metric(t, f, h, a, b, basis.weights)
+    with torch.no_grad():
+        exact = latent.latent_metric(t, f, h, torch.as_tensor((a + b) / 2), basis.weights).numpy()
+    assert np.allclose(gram, exact, rtol=1e-8, atol=1e-10 * np.abs(exact).max())
+    assert not np.allclose(gram, basis.template_metric(), rtol=1e-3)
+    # where the mean code's surface has a degenerate face, the template's metric instead
+    flat = np.zeros((6, *t.shape))
+    flat[0, f[0, 0]] = (t[f[0, 2]] - t[f[0, 0]]).numpy()  # corner 0 of face 0 onto corner 2 at code 1
+    flat_t = torch.as_tensor(flat)
+    gram = geodesics.midpoint_metric(t, f, flat_t, 2 * np.eye(6)[0], np.zeros(6), basis.weights)
+    assert np.allclose(gram, h2_metric.assembled_metric_matrix(t, f, flat_t, basis.weights).numpy())

@@ -33,6 +33,26 @@ def test_plateau_does_not_stop_a_steady_decrease():
     assert np.allclose(x, target, atol=1e-6) and value < 1e-10
 
 
+def test_stall_ends_line_searches_lost_in_rounding_noise_and_keeps_the_best_point():
+    # like a float32 energy near its minimum: the value carries noise (1e-3) its gradient does not see
+    target = torch.linspace(-1.0, 1.0, 20, dtype=torch.float64)
+    scales = torch.linspace(1.0, 50.0, 20, dtype=torch.float64)
+    counts = []
+
+    def noisy(x):
+        counts[-1] += 1
+        return 10.0 + ((x - target) ** 2 * scales).sum() + 1e-3 * torch.sin(1e7 * x.detach().sum())
+
+    results = []
+    for stall in (None, 10):
+        counts.append(0)
+        results.append(minimize_lbfgs(noisy, np.zeros(20), max_iter=300, plateau=(5, 1e-9), stall=stall))
+    (_, value_free, _), (x, value, _) = results
+    assert counts[1] < counts[0] / 2
+    assert value <= value_free + 2e-3  # as low as the free solve, to the noise
+    assert np.abs(x - target.numpy()).max() < 0.01
+
+
 def test_non_finite_objective_raises_solve_diverged():
     with pytest.raises(SolveDiverged):
         minimize_lbfgs(lambda x: (x**2).sum() / (x**2).sum().detach() * float("nan"), np.ones(3))

@@ -63,18 +63,19 @@ def test_symmetric_matching_of_two_scans_solves_with_the_given_metric_steps_and_
         assert reg.chamfer > 0 and reg.varifold == 0.0
 
 
-def test_geodesic_between_codes_is_preconditioned_at_the_template_for_the_given_metric(sphere, monkeypatch):
+def test_geodesic_between_codes_is_preconditioned_at_their_mean_for_the_given_metric(sphere, monkeypatch):
     basis, _ = sphere
-    real, metrics = geodesics.geodesic, []
+    real, calls = geodesics.midpoint_metric, []
 
-    def spy(*args, metric=None, **kwargs):
-        metrics.append(metric)
-        return real(*args, metric=metric, **kwargs)
+    def spy(template, faces, fields, alpha0, alpha1, weights):
+        calls.append((alpha0, alpha1, weights))
+        return real(template, faces, fields, alpha0, alpha1, weights)
 
-    monkeypatch.setattr(geodesics, "geodesic", spy)
+    monkeypatch.setattr(geodesics, "midpoint_metric", spy)
     found = workflows.geodesic_between(basis, workflows.KnownCode(A), workflows.KnownCode(B),
                                        workflows.Options(weights="body", steps=4))
-    assert len(metrics) == 1 and np.array_equal(metrics[0], basis.template_metric(PRESETS["body"]))
+    assert len(calls) == 1
+    assert np.array_equal(calls[0][0], A) and np.array_equal(calls[0][1], B) and calls[0][2] == PRESETS["body"]
     assert found.distance > 0 and found.path.shape == (4, 4)
 
 

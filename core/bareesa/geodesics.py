@@ -10,8 +10,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from . import h2_metric
 from .errors import InputError
-from .latent import decode, latent_metric, latent_path_energy, time_whitening, whitening
+from .geometry import face_areas
+from .latent import decode, latent_path_energy, time_whitening, whitening
 from .optimize import minimize_lbfgs
 from .progress import Monitor
 
@@ -51,6 +53,28 @@ GEODESIC_FTOL = 1e-10
 #: decoded vertex within 0.20 mm of the float64 path solved to GEODESIC_FTOL (the time discretisation
 #: itself moves them by ~1 mm).
 FRAMES_PLATEAU = (5, 1e-5)
+#: ... and once this many times the plateau's window of evaluations in a row did not lower the energy by
+#: its rtol (``optimize.minimize_lbfgs``'s stall: line searches lost in float32 rounding noise)
+STALL_PER_WINDOW = 2
+#: ``midpoint_metric`` falls back to the template's metric where a face of the mean code's surface has
+#: less than this share of its template area
+DEGENERATE_AREA = 1e-3
+
+
+def midpoint_metric(template, faces, fields, alpha0, alpha1, weights):
+    """G-bar at the mean of two codes (P,), (P,) -> (P, P) float64 numpy (``h2_metric.assembled_metric_matrix``,
+    ~0.2 s on `human`): what ``geodesic`` preconditions with by default. The metric along a path between
+    two bodies is closer to it than to the template's: on 12 pairs of random `human` bodies the geodesic
+    converged in 6-16 L-BFGS iterations instead of 22-31, 10 times closer to the exact path (bench/README).
+    Where the mean code's surface has a face collapsed below DEGENERATE_AREA of its template area (its
+    H2 terms divide by the area) or the matrix is not finite, the template's G-bar instead."""
+    mean = torch.as_tensor((np.asarray(alpha0, np.float64) + alpha1) / 2, dtype=template.dtype, device=template.device)
+    surface = decode(template, fields, mean)
+    gram = h2_metric.assembled_metric_matrix(surface, faces, fields, weights)
+    ratio = face_areas(surface, faces) / face_areas(template, faces).clamp_min(1e-300)
+    if not (torch.isfinite(gram).all() and ratio.min() >= DEGENERATE_AREA):
+        gram = h2_metric.assembled_metric_matrix(template, faces, fields, weights)
+    return gram.double().cpu().numpy()
 
 
 def geodesic(template, faces, fields, alpha0, alpha1, weights, steps=10, max_iter=500, init=None,
@@ -59,8 +83,8 @@ def geodesic(template, faces, fields, alpha0, alpha1, weights, steps=10, max_ite
 
     template (N, 3), faces (F, 3), fields (P, N, 3) torch tensors; alpha0, alpha1 (P,);
     steps T >= 2 time points including both ends; init (T, P) optional initial path;
-    metric (P, P) a latent metric to precondition with (e.g. ``Basis.template_metric()``;
-    default G-bar at the mean of the end codes); plateau: (k, r) also stop once the energy fell by less
+    metric (P, P) a latent metric to precondition with (default G-bar at the mean of the end codes,
+    ``midpoint_metric``; e.g. ``Basis.template_metric()`` costs nothing but converges slower); plateau: (k, r) also stop once the energy fell by less
     than r of itself over k iterations (e.g. FRAMES_PLATEAU). The interior is optimised in coordinates
     z with path = straight line + sqrt(dt) R^-1 z B (``time_whitening``, ``whitening``), in
     which the energy is close to |z|^2 + const, so L-BFGS converges in tens of iterations.
@@ -81,9 +105,7 @@ def geodesic(template, faces, fields, alpha0, alpha1, weights, steps=10, max_ite
                                                                                   device=template.device), weights))
         return Geodesic(path=path0, energy=e, distance=float(np.sqrt(max(e, 0.0))), iterations=0)
     if metric is None:
-        mean = torch.as_tensor((line[0] + line[-1]) / 2, dtype=template.dtype, device=template.device)
-        with torch.no_grad():
-            metric = latent_metric(template, faces, fields, mean, weights).double().cpu().numpy()
+        metric = midpoint_metric(template, faces, fields, alpha0, alpha1, weights)
     b = whitening(metric)
     r_inv = time_whitening(steps - 2) * np.sqrt(1.0 / (steps - 1))
     # z0 from the initial path: deviation = r_inv z b  <=>  z = r_inv^-1 deviation b^-1
@@ -99,7 +121,8 @@ def geodesic(template, faces, fields, alpha0, alpha1, weights, steps=10, max_ite
 
     monitor.report(0.0, "geodesic")
     z, value, nit = minimize_lbfgs(energy, z0.ravel(), monitor, max_iter=max_iter, message="geodesic",
-                                   ftol=GEODESIC_FTOL, plateau=plateau)
+                                   ftol=GEODESIC_FTOL, plateau=plateau,
+                                   stall=None if plateau is None else STALL_PER_WINDOW * plateau[0])
     with torch.no_grad():
         path = path_of(torch.from_numpy(z).to(template)).double().cpu().numpy()
     path[0], path[-1] = alpha0, alpha1

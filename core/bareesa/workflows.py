@@ -225,8 +225,8 @@ def geodesic_between(basis, a, b, options=Options(), callback=None, cancel=None)
     ends = tuple(codes_of(basis, [a, b], options, monitor.scaled(0.0, lo), cancel))
     template, faces, fields = options.path_tensors(basis)
     g = geodesics.geodesic(template, faces, fields, ends[0].code, ends[1].code, weights, steps=options.steps,
-                           max_iter=options.max_iter, metric=basis.template_metric(weights),
-                           callback=monitor.scaled(lo, 1.0), cancel=cancel, plateau=geodesics.FRAMES_PLATEAU)
+                           max_iter=options.max_iter, callback=monitor.scaled(lo, 1.0), cancel=cancel,
+                           plateau=geodesics.FRAMES_PLATEAU)
     return LatentPath(ends=ends, path=g.path, distance=g.distance)
 
 
@@ -285,8 +285,7 @@ def distances(basis, items, options=Options(), callback=None, cancel=None):
     for k, (i, j) in enumerate(pairs):
         sub = monitor.scaled(lo + (1 - lo) * k / len(pairs), lo + (1 - lo) * (k + 1) / len(pairs))
         d[i, j] = d[j, i] = geodesics.geodesic(template, faces, fields, codes[i], codes[j], weights,
-                                               steps=options.steps, max_iter=options.max_iter,
-                                               metric=basis.template_metric(weights), callback=sub,
+                                               steps=options.steps, max_iter=options.max_iter, callback=sub,
                                                cancel=cancel).distance
     return d
 

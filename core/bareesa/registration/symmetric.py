@@ -134,7 +134,7 @@ def match_registered(basis, scans, regs, steps, level, weights, monitor, dtype=t
     # start: the geodesic between the two registrations' codes
     codes = [reg.code for reg in regs]
     init = geodesic(*basis.tensors(dtype=START_DTYPE, device=device), *codes, weights, steps=steps,
-                    cancel=monitor.cancel, metric=gram, max_iter=100, plateau=FRAMES_PLATEAU)
+                    cancel=monitor.cancel, max_iter=100, plateau=FRAMES_PLATEAU)
     deviation = (init.path - straight_path(*codes, steps))[1:-1]
     inner = np.linalg.solve(r_inv, deviation) @ np.linalg.inv(b_path) if steps > 2 else deviation
     x0 = np.concatenate([np.linalg.solve(ends[0][1].T, codes[0]), np.linalg.solve(ends[1][1].T, codes[1]),
