@@ -84,9 +84,10 @@ def geodesic(template, faces, fields, alpha0, alpha1, weights, steps=10, max_ite
     template (N, 3), faces (F, 3), fields (P, N, 3) torch tensors; alpha0, alpha1 (P,);
     steps T >= 2 time points including both ends; init (T, P) optional initial path;
     metric (P, P) a latent metric to precondition with (default G-bar at the mean of the end codes,
-    ``midpoint_metric``; e.g. ``Basis.template_metric()`` costs nothing but converges slower); plateau: (k, r) also stop once the energy fell by less
-    than r of itself over k iterations (e.g. FRAMES_PLATEAU). The interior is optimised in coordinates
-    z with path = straight line + sqrt(dt) R^-1 z B (``time_whitening``, ``whitening``), in
+    ``midpoint_metric``; ``Basis.template_metric()`` costs nothing but converges slower); plateau: (k, r)
+    also stop once the energy fell by less than r of itself over k iterations (e.g. FRAMES_PLATEAU), and
+    once 2 k evaluations in a row did not lower it by r (STALL_PER_WINDOW). The interior is optimised in
+    coordinates z with path = straight line + sqrt(dt) R^-1 z B (``time_whitening``, ``whitening``), in
     which the energy is close to |z|^2 + const, so L-BFGS converges in tens of iterations.
     """
     if steps < 2:
