@@ -9,7 +9,7 @@ import torch
 from scipy.spatial.transform import Rotation, Slerp
 
 from ..errors import InputError
-from ..geodesics import FRAMES_PLATEAU, decode_path, geodesic, straight_path
+from ..geodesics import FRAMES_PLATEAU, decode_path, geodesic, midpoint_metric, straight_path
 from ..h2_metric import H2Weights, path_energy
 from ..latent import decode, time_whitening, whitening
 from ..optimize import minimize_lbfgs
@@ -104,14 +104,18 @@ def match_registered(basis, scans, regs, steps, level, weights, monitor, dtype=t
     template frame by its registration's similarity. -> (path (steps, P), energy, (Gamma_0, Gamma_1)).
 
     Preconditioned like a registration level (``problem.PathVariables``): each end code whitened by its
-    level Hessian estimate, the interior's deviation from the straight line by the time and template metric
-    whitenings, so that L-BFGS meets a nearly isotropic problem; stopped at LEVEL_FTOL or MATCH_PLATEAU.
-    Starts from the geodesic between the registered codes (in START_DTYPE)."""
+    level Hessian estimate, the interior's deviation from the straight line by the time whitening and the
+    metric at the mean of the registered codes (``geodesics.midpoint_metric``), so that L-BFGS meets a
+    nearly isotropic problem; stopped at LEVEL_FTOL or MATCH_PLATEAU. Starts from the geodesic between the
+    registered codes (in START_DTYPE)."""
     template, faces, fields = basis.tensors(dtype=dtype, device=device)
     p = fields.shape[0]
     gram = basis.template_metric(weights)
     ends = [_end_terms(basis, scan, reg, level, gram, dtype, device) for scan, reg in zip(scans, regs)]
-    b_path = whitening(gram)
+    codes = [reg.code for reg in regs]
+    start_tensors = basis.tensors(dtype=START_DTYPE, device=device)
+    middle = midpoint_metric(*start_tensors, *codes, weights)
+    b_path = whitening(middle)
     r_inv = time_whitening(steps - 2) * math.sqrt(1.0 / (steps - 1)) if steps > 2 else np.eye(0)
     as_t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
     b0, b1, b_t, r_t = as_t(ends[0][1]), as_t(ends[1][1]), as_t(b_path), as_t(r_inv)
@@ -132,9 +136,8 @@ def match_registered(basis, scans, regs, steps, level, weights, monitor, dtype=t
         return level.weight * (gammas[0] + gammas[1]) + energy
 
     # start: the geodesic between the two registrations' codes
-    codes = [reg.code for reg in regs]
-    init = geodesic(*basis.tensors(dtype=START_DTYPE, device=device), *codes, weights, steps=steps,
-                    cancel=monitor.cancel, max_iter=100, plateau=FRAMES_PLATEAU)
+    init = geodesic(*start_tensors, *codes, weights, steps=steps, cancel=monitor.cancel, max_iter=100,
+                    metric=middle, plateau=FRAMES_PLATEAU)
     deviation = (init.path - straight_path(*codes, steps))[1:-1]
     inner = np.linalg.solve(r_inv, deviation) @ np.linalg.inv(b_path) if steps > 2 else deviation
     x0 = np.concatenate([np.linalg.solve(ends[0][1].T, codes[0]), np.linalg.solve(ends[1][1].T, codes[1]),
