@@ -70,9 +70,10 @@ def midpoint_metric(template, faces, fields, alpha0, alpha1, weights):
     H2 terms divide by the area) or the matrix is not finite, the template's G-bar instead."""
     mean = torch.as_tensor((np.asarray(alpha0, np.float64) + alpha1) / 2, dtype=template.dtype, device=template.device)
     surface = decode(template, fields, mean)
-    gram = h2_metric.assembled_metric_matrix(surface, faces, fields, weights)
-    ratio = face_areas(surface, faces) / face_areas(template, faces).clamp_min(1e-300)
-    if not (torch.isfinite(gram).all() and ratio.min() >= DEGENERATE_AREA):
+    gram = None
+    if face_areas(surface, faces).div(face_areas(template, faces).clamp_min(1e-300)).min() >= DEGENERATE_AREA:
+        gram = h2_metric.assembled_metric_matrix(surface, faces, fields, weights)
+    if gram is None or not torch.isfinite(gram).all():
         gram = h2_metric.assembled_metric_matrix(template, faces, fields, weights)
     return gram.double().cpu().numpy()
 
