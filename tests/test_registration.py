@@ -319,6 +319,45 @@ def test_realign_moves_a_shifted_rescaled_scan_back_onto_the_surface(space):
     assert math.isfinite(score) and score > 0
 
 
+def test_realign_scores_all_codes_against_one_scan_loss_as_one_by_one(space, monkeypatch):
+    # one loss against the scan for all codes (its self term summed once): the same scores as one code
+    # at a time
+    problem, level = _problem(space), space["basis"].schedule[1]
+    codes = space["alpha"] + 0.3 * np.random.default_rng(6).normal(size=(5, 6))
+    built = []
+
+    class Counted(level_problem.BinnedMeasureLoss):
+        def __init__(self, *args, **kwargs):
+            built.append(1)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(level_problem, "BinnedMeasureLoss", Counted)
+    together = problem.realign(level, codes, Similarity(), max_iter=0)
+    assert len(built) == 1
+    alone = [problem.realign(level, [c], Similarity(), max_iter=0)[0] for c in codes]
+    assert len(built) == 6
+    scores = [s for _, s in together]
+    assert np.allclose(scores, [s for _, s in alone], rtol=1e-12) and len(set(np.round(scores, 9))) == 5
+
+
+def test_pose_short_solves_run_on_a_one_step_path_and_coarser_cells(space, monkeypatch):
+    monkeypatch.setattr(poses, "POSE_ITER", 2)
+    basis, alpha = space["basis"], space["alpha"]
+    problem = _problem(space)
+    solved = []
+    solve = problem.solve_level
+
+    def spy(level, *args, **kwargs):
+        solved.append((level.steps, level.max_iter, kwargs.get("bin_cell")))
+        return solve(level, *args, **kwargs)
+
+    problem.solve_level = spy
+    poses.try_poses(problem, basis, basis.schedule[1], basis.schedule[-1], np.zeros((2, 6)), Similarity(),
+                    alpha[None] + 0.05, (0.0, 1.0), "test")
+    assert solved and set(solved) == {(poses.POSE_STEPS, 2, poses.POSE_BIN_CELL)}
+    assert poses.POSE_STEPS < basis.schedule[1].steps and poses.POSE_BIN_CELL > level_problem.BIN_CELL
+
+
 def test_pose_stage_starts_the_level_from_the_candidate_that_fits(space, monkeypatch):
     # short solves of 2 iterations barely move: the stage must hand on the candidate near alpha*,
     # not the template it was given or the far candidates

@@ -91,10 +91,13 @@ def coarse_measure(verts, faces, face_weights, cell):
 
 
 class CoarseVarifold:
-    """Binet varifold of binned measures against a fixed target; the source moves by a similarity."""
+    """Binet varifold of binned measures against a fixed target; the source moves by a similarity.
+
+    target: a binned measure (centroids (D, 3), features (D, 9)), or a ``BinnedMeasureLoss`` against
+    one, to share its cached self term among several sources (``RegistrationProblem.realign``)."""
 
     def __init__(self, target, source, sigma):
-        self.loss = BinnedMeasureLoss(*target, sigma)
+        self.loss = target if isinstance(target, BinnedMeasureLoss) else BinnedMeasureLoss(*target, sigma)
         self.source = source
         self.self_t = float(self.loss.self_t)
 

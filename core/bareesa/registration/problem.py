@@ -18,7 +18,7 @@ from ..latent import decode, time_whitening, whitening
 from ..mesh import face_geometry, smoothed_normals, winding_parity
 from ..optimize import minimize_lbfgs
 from ..transforms import Similarity, axis_angle_rotation
-from ..varifold import BIN_CELL, BinnedVarifoldLoss, VarifoldLoss, default_cutoff, is_oriented
+from ..varifold import BIN_CELL, BinnedMeasureLoss, BinnedVarifoldLoss, VarifoldLoss, default_cutoff, is_oriented
 from .prealign import PREALIGN_CELL, CoarseVarifold, coarse_measure, surface_moments
 
 #: L-BFGS stops a level when an iteration lowers the objective by less than this relative amount
@@ -217,7 +217,9 @@ class RegistrationProblem:
         cell = PREALIGN_CELL * sigma
         moved = transform.apply(self.scan)
         scan_center = surface_moments(moved, self.scan_faces_np, self.scan_weights_np)[1]
-        scan = coarse_measure(moved - self.center, self.scan_faces, self.scan_weights_np, cell)
+        # one loss against the scan for every code: the scan's self term is summed once
+        scan = BinnedMeasureLoss(*coarse_measure(moved - self.center, self.scan_faces, self.scan_weights_np, cell),
+                                 sigma)
         eye = torch.eye(3, dtype=torch.float64)
         out = []
         for code in codes:
@@ -287,15 +289,15 @@ class RegistrationProblem:
                                     self.scan_weights_np)
         return torch.as_tensor(faces, dtype=torch.long, device=self.device), turned
 
-    def level_loss(self, kernel, sigma, target, scan_faces, code):
+    def level_loss(self, kernel, sigma, target, scan_faces, code, bin_cell=BIN_CELL):
         """The varifold loss of one level against the scan (target (M, 3) in the template frame):
-        binned (``BinnedVarifoldLoss`` about F(code)) as ``self.binning`` says, else truncated at
-        FINE_TOL with the scan summed over cells of SCAN_CELL (ORIENTED_SCAN_CELL for an oriented kernel)
-        x sigma -> (loss, binned)."""
+        binned (``BinnedVarifoldLoss`` about F(code), cells of bin_cell x sigma) as ``self.binning`` says,
+        else truncated at FINE_TOL with the scan summed over cells of SCAN_CELL (ORIENTED_SCAN_CELL for an
+        oriented kernel) x sigma -> (loss, binned)."""
         if self.binning:
             start = decode(self.template, self.fields, torch.as_tensor(code, dtype=self.dtype, device=self.device))
             loss = BinnedVarifoldLoss(start, self.faces, target, scan_faces, sigma, kernel, self.scan_weights,
-                                      cell=BIN_CELL * sigma, backend=self.backend)
+                                      cell=bin_cell * sigma, backend=self.backend)
             n_s, n_t = self.faces.shape[0], scan_faces.shape[0]
             pairs = loss.n_groups * (loss.n_groups + loss.n_target)
             if self.binning is True or pairs <= BIN_GAIN * n_s * (n_s + n_t):
@@ -316,12 +318,14 @@ class RegistrationProblem:
                             cutoff=default_cutoff(sigma, FINE_TOL), target_normals=normals,
                             target_cell=None if cell is None else cell * sigma), False
 
-    def solve_level(self, level, path, transform, progress, message, kernel="binet", orient=False):
+    def solve_level(self, level, path, transform, progress, message, kernel="binet", orient=False,
+                    bin_cell=BIN_CELL):
         """Minimise one level from path (T0+1, P) and the alignment -> (path (T+1, P), alignment, report).
 
         kernel: the varifold's (a name of ``bareesa.varifold.KERNELS``, or names joined by "+": the sum
         of their varifolds); orient: with an oriented kernel, first turn the scan's faces like the fit
-        so far (``oriented_scan_faces``), else use them as given."""
+        so far (``oriented_scan_faces``), else use them as given; bin_cell: the cells of a binned level,
+        in units of sigma (``level_loss``)."""
         t0 = time.perf_counter()
         self.monitor.check()
         dtype, device, p_dim, steps = self.dtype, self.device, self.n_fields, level.steps
@@ -331,7 +335,7 @@ class RegistrationProblem:
         scan_faces, turned = self.scan_faces, None
         if orient and any(is_oriented(name) for name in names):
             scan_faces, turned = self.oriented_scan_faces(path[-1], transform)
-        losses = [self.level_loss(name, sigma, target, scan_faces, path[-1]) for name in names]
+        losses = [self.level_loss(name, sigma, target, scan_faces, path[-1], bin_cell) for name in names]
         binned = losses[0][1]
         losses = [loss for loss, _ in losses]
         if self.marks is not None:
