@@ -31,7 +31,7 @@ POSE_ITER = 40
 POSE_WEIGHT_GAIN = 10.0
 #: ... the short solves run on a one-step path (the end code is what the next level's sigma judges; the
 #: level resumes from it on its own steps) with the level's cells coarsened to POSE_BIN_CELL x sigma: on
-#: 5 `human` scans with pose finalists this picked the same candidate as the level's own steps and cells
+#: 4 `human` scans with pose finalists this picked the same candidate as the level's own steps and cells
 #: and cut the stage by ~40 % (bench/README)
 POSE_STEPS = 1
 POSE_BIN_CELL = 0.8
