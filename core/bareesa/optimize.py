@@ -6,13 +6,16 @@ import torch
 
 from .errors import SolveDiverged
 
+#: Past steps L-BFGS keeps by default (scipy's ``maxcor``)
+LBFGS_MEMORY = 20
+
 
 class _Stalled(Exception):
     """Raised inside the objective to end a solve whose line searches no longer lower it."""
 
 
 def minimize_lbfgs(objective, x0, monitor=None, max_iter=200, progress=(0.0, 1.0), message="",
-                   gtol=1e-10, ftol=1e-12, plateau=None, preview=None, stall=None):
+                   gtol=1e-10, ftol=1e-12, plateau=None, preview=None, stall=None, memory=LBFGS_MEMORY):
     """Minimise ``objective(x: torch float64 tensor) -> scalar tensor`` from x0 (n,) numpy.
 
     Returns (x (n,) numpy, final value, number of iterations). The monitor's
@@ -23,7 +26,7 @@ def minimize_lbfgs(objective, x0, monitor=None, max_iter=200, progress=(0.0, 1.0
     r * |best|, and return the best point evaluated: near its minimum a float32 objective's rounding
     noise sends line searches round for up to 20 evaluations each (a `human` geodesic: 9 evaluations
     to converge, 65 more spent so). preview (every k, x -> dict): every k iterations the progress
-    report carries preview(x).
+    report carries preview(x). memory: the number of past steps L-BFGS keeps (its ``maxcor``).
     """
     x0 = np.ascontiguousarray(x0, dtype=np.float64)
     state = {"it": 0, "value": None, "best": (np.inf, x0), "ref": np.inf, "since": 0}
@@ -72,7 +75,7 @@ def minimize_lbfgs(objective, x0, monitor=None, max_iter=200, progress=(0.0, 1.0
         return x0, float(objective(torch.from_numpy(x0))), 0
     try:
         res = scipy.optimize.minimize(fun, x0, jac=True, method="L-BFGS-B", callback=callback,
-                                      options={"maxiter": max_iter, "gtol": gtol, "ftol": ftol, "maxcor": 20})
+                                      options={"maxiter": max_iter, "gtol": gtol, "ftol": ftol, "maxcor": memory})
     except _Stalled:
         value, x = state["best"]
         return x, value, state["it"]

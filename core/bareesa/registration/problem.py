@@ -27,6 +27,10 @@ LEVEL_FTOL = 1e-9
 #: ... and when it fell by less than LEVEL_PLATEAU[1] (relative) over the last LEVEL_PLATEAU[0]
 #: iterations: easy problems plateau within ~15 iterations, a body in a new pose needs ~100
 LEVEL_PLATEAU = (5, 1e-3)
+#: ... keeping this many past steps (``minimize_lbfgs(memory=)``): on slow `human` finest levels (90-133
+#: iterations, a limb sliding into place late) 100 instead of 20 reached a lower objective in about as
+#: many iterations (vertex error 1.74 -> 1.32 mm on one scan, bench/README)
+LEVEL_MEMORY = 100
 BIN_GAIN = 0.05             # "auto" bins a level when that leaves at most this share of face pairs
 #: Unbinned levels: truncation tolerance of the varifold kernel (cutoff sigma sqrt(log(1/tol)),
 #: relative error of d^2 ~1e-6 at paper scale) and cell size, in units of sigma, of the scan's
@@ -382,6 +386,7 @@ class RegistrationProblem:
 
         x, value, nit = minimize_lbfgs(objective, x0, self.monitor, max_iter=level.max_iter,
                                        progress=progress, message=message, ftol=LEVEL_FTOL, plateau=LEVEL_PLATEAU,
+                                       memory=LEVEL_MEMORY,
                                        preview=(PREVIEW_EVERY, result_so_far) if self.monitor.wants_preview else None)
         with torch.no_grad():
             objective(torch.from_numpy(x))
