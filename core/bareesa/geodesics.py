@@ -13,7 +13,7 @@ import torch
 from . import h2_metric
 from .errors import InputError
 from .geometry import face_areas
-from .latent import decode, latent_path_energy, time_whitening, whitening
+from .latent import decode, interior_whitening, latent_path_energy, whitening
 from .optimize import minimize_lbfgs
 from .progress import Monitor
 
@@ -109,7 +109,7 @@ def geodesic(template, faces, fields, alpha0, alpha1, weights, steps=10, max_ite
     if metric is None:
         metric = midpoint_metric(template, faces, fields, alpha0, alpha1, weights)
     b = whitening(metric)
-    r_inv = time_whitening(steps - 2) * np.sqrt(1.0 / (steps - 1))
+    r_inv = interior_whitening(steps - 2)
     # z0 from the initial path: deviation = r_inv z b  <=>  z = r_inv^-1 deviation b^-1
     z0 = np.linalg.solve(r_inv, path0[1:-1] - line[1:-1]) @ np.linalg.inv(b)
     as_t = lambda a: torch.as_tensor(a, dtype=template.dtype, device=template.device)  # noqa: E731

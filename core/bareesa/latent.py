@@ -10,6 +10,7 @@ data is ``basis_building``'s; ``project_to_basis`` gives the code of a mesh alre
 in template topology.
 """
 
+import math
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -190,6 +191,14 @@ def time_whitening(n):
     of a path with fixed ends: whitens the time coupling of a discrete path energy."""
     k = 2 * np.eye(n) - np.eye(n, k=1) - np.eye(n, k=-1)
     return np.linalg.inv(np.linalg.cholesky(k).T)
+
+
+def interior_whitening(n):
+    """sqrt(dt) R^-1 (n, n) for the n interior time points of a path of n + 2 (dt = 1 / (n + 1),
+    ``time_whitening``): interior deviations from the straight line r @ z @ B (B a ``whitening``) put the
+    path energy near |z|^2 + const. The solvers of geodesics, registration levels and symmetric matching
+    optimise in such coordinates."""
+    return time_whitening(n) * math.sqrt(1.0 / (n + 1))
 
 
 def latent_path_energy(template, faces, fields, path, weights, per_step=False):

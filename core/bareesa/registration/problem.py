@@ -14,7 +14,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from .. import h2_metric
-from ..latent import decode, time_whitening, whitening
+from ..latent import decode, interior_whitening, whitening
 from ..mesh import face_geometry, smoothed_normals, winding_parity
 from ..optimize import minimize_lbfgs
 from ..transforms import Similarity, axis_angle_rotation
@@ -97,7 +97,7 @@ class PathVariables:
     def __init__(self, steps, whiten_end, whiten_path):
         self.steps = steps
         self.b_end, self.b = np.asarray(whiten_end, np.float64), np.asarray(whiten_path, np.float64)
-        self.r_inv = time_whitening(steps - 1) * math.sqrt(1.0 / steps) if steps > 1 else np.zeros((0, 0))
+        self.r_inv = interior_whitening(steps - 1)
         self.ramp = np.linspace(0.0, 1.0, steps + 1)[:, None]
         self._t = {}
 

@@ -1,6 +1,5 @@
 """Symmetric matching of two raw scans: both codes and the geodesic between them in one solve."""
 
-import math
 import time
 from dataclasses import dataclass
 
@@ -11,7 +10,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from ..errors import InputError
 from ..geodesics import FRAMES_PLATEAU, decode_path, geodesic, midpoint_metric, straight_path
 from ..h2_metric import H2Weights, path_energy
-from ..latent import decode, time_whitening, whitening
+from ..latent import decode, interior_whitening, whitening
 from ..optimize import minimize_lbfgs
 from ..progress import Monitor
 from ..transforms import Similarity
@@ -116,7 +115,7 @@ def match_registered(basis, scans, regs, steps, level, weights, monitor, dtype=t
     start_tensors = basis.tensors(dtype=START_DTYPE, device=device)
     middle = midpoint_metric(*start_tensors, *codes, weights)
     b_path = whitening(middle)
-    r_inv = time_whitening(steps - 2) * math.sqrt(1.0 / (steps - 1)) if steps > 2 else np.eye(0)
+    r_inv = interior_whitening(steps - 2)
     as_t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
     b0, b1, b_t, r_t = as_t(ends[0][1]), as_t(ends[1][1]), as_t(b_path), as_t(r_inv)
     ramp = torch.linspace(0, 1, steps, dtype=dtype, device=device)[1:-1, None]
