@@ -8,14 +8,15 @@ Held-out identities (``bases.build.human.identities()[1]``) performing held-out 
    height), as ``bench.humanoid_accuracy``.
 2. A real body nobody in the project made, ``../shared/data/body/DFAUST_template.ply``, in
    random orientations: mean nearest-point distance both ways and Hausdorff, with ``human``
-   and the old mannequin ``humanoid`` beside it.
+   and, given ``--old DIR/humanoid.npz`` (``python -m bases.build humanoid -o DIR``: the mannequin
+   is no longer bundled), the old mannequin beside it.
 3. Interpolation / extrapolation on held-out motions (the humanoid bench's protocol).
 4. Random bodies: self-intersecting face pairs (non-adjacent faces, Blender's
    ``BVHTree.overlap``) over ``--bodies`` random bodies; the share with none.
 5. Ablation (projection error of held-out frames for prefixes of the groups) and a contact
    sheet PNG.
 
-Usage: python -m bench.human_accuracy [--scans N] [--bodies N] [--skip ...] [--card] [--out bench/out]
+Usage: python -m bench.human_accuracy [--scans N] [--bodies N] [--skip ...] [--old NPZ] [--card] [--out bench/out]
 """
 
 import argparse
@@ -61,7 +62,7 @@ def surface_distances(a_verts, a_faces, b_verts, b_faces, samples=20000, seed=0)
     return float(ab.mean()), float(ba.mean()), float(max(ab.max(), ba.max()))
 
 
-def real_body_rows(bases=("human", "humanoid"), n=3, seed=0):
+def real_body_rows(bases=("human",), n=3, seed=0):
     """Register the DFAUST template (rotated, shifted) with each basis: surface distances in mm."""
     import trimesh
     import bpy  # noqa: F401
@@ -89,7 +90,7 @@ def real_body_rows(bases=("human", "humanoid"), n=3, seed=0):
             seconds = time.perf_counter() - t0
             fit = sim.invert(np.asarray(res.vertices, dtype=np.float64))
             d_rb, d_br, haus = surface_distances(fit, basis.faces, body_v, body_f)
-            rows.append({"basis": name, "trial": k, "reg->body_mm": round(1e3 * d_rb, 1),
+            rows.append({"basis": basis.name, "trial": k, "reg->body_mm": round(1e3 * d_rb, 1),
                          "body->reg_mm": round(1e3 * d_br, 1), "hausdorff_mm": round(1e3 * haus, 1),
                          "poor_fit": bool(res.poor_fit), "seconds": round(seconds, 1)})
             print("  ".join(str(v) for v in rows[-1].values()), flush=True)
@@ -139,6 +140,9 @@ def main(argv=None):
     parser.add_argument("--bodies", type=int, default=50, help="random bodies checked for self-intersection")
     parser.add_argument("--seed", type=int, default=0, help="seed of the random bodies")
     parser.add_argument("--real", type=int, default=3, help="random orientations of the real body per basis")
+    parser.add_argument("--old", nargs="*", default=[], metavar="NPZ",
+                        help="other bases registered to the real body beside --basis (e.g. a build of the retired "
+                             "humanoid mannequin)")
     parser.add_argument("--skip", nargs="*", default=[],
                         choices=["registration", "real", "interpolation", "random", "ablation", "sheet"])
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "out")
@@ -157,7 +161,7 @@ def main(argv=None):
     print(f"basis {basis.name}: {len(basis.template)} vertices, groups {basis.groups}, height {height:.3f} m")
     results = {}
     if set(args.skip) >= {"registration", "interpolation", "random", "ablation", "sheet"}:  # the real body only
-        results["real_body"] = real_body_rows(n=args.real)
+        results["real_body"] = real_body_rows((args.basis, *args.old), n=args.real)
         (args.out / "human_accuracy_real.json").write_text(json.dumps(results, indent=2) + "\n")
         return
     if set(args.skip) >= {"registration", "interpolation", "ablation", "sheet"}:  # random bodies: no Anny
@@ -192,7 +196,7 @@ def main(argv=None):
         print("mean  " + "  ".join(f"{k}={v}" for k, v in results["registration"]["mean"].items()))
     if "real" not in args.skip and args.real > 0:
         print("\nThe DFAUST template (a real body, no correspondence), randomly oriented: surface distances")
-        results["real_body"] = real_body_rows(n=args.real)
+        results["real_body"] = real_body_rows((args.basis, *args.old), n=args.real)
     if "interpolation" not in args.skip:
         rows = interpolation_rows(basis, every_frame)
         _table(rows, list(rows[0]), "Interpolation / extrapolation in monotone mini-sequences of held-out motions")
@@ -204,9 +208,9 @@ def main(argv=None):
         write_card_accuracy(args.basis, {k: v for k, v in results.items() if k in ("registration", "interpolation",
                                                                                    "ablation")},
                             measured_by="python -m bench.human_accuracy --card")
-        from bareesa.basis_io import BUNDLED_DIR
+        from bareesa.basis_io import resolve_basis_path
 
-        path = BUNDLED_DIR / f"{args.basis}.json"
+        path = resolve_basis_path(args.basis).with_suffix(".json")
         card = json.loads(path.read_text())
         for key in ("random_bodies", "real_body"):
             if key in results:

@@ -1,4 +1,4 @@
-"""Accuracy of the bundled ``humanoid`` basis on data never used to build it.
+"""Accuracy of the ``humanoid`` mannequin basis (retired from the bundle) on data never used to build it.
 
 Held-out body types (``bases.build.humanoid.identity_sets()[1]``) performing held-out
 motions (``TEST_MOTIONS``) are regenerated with the Blender generator (needs ``bpy``).
@@ -16,7 +16,8 @@ motions (``TEST_MOTIONS``) are regenerated with the Blender generator (needs ``b
    prefixes of the pose and shape groups.
 4. A contact sheet PNG (template, identities, a motion).
 
-Usage: python -m bench.humanoid_accuracy [--scans N] [--full NPZ] [--card] [--out bench/out]
+Usage: python -m bench.humanoid_accuracy --basis DIR/humanoid.npz [--scans N] [--full NPZ] [--card] [--out bench/out]
+(build the mannequin first: python -m bases.build humanoid -o DIR)
 """
 
 import argparse
@@ -296,7 +297,8 @@ def sheet(path, rows, faces, height):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--basis", default="humanoid")
+    parser.add_argument("--basis", help="a build of the mannequin: python -m bases.build humanoid -o DIR, then "
+                                        "DIR/humanoid.npz (it is no longer bundled)")
     parser.add_argument("--scans", type=int, default=8, help="number of simulated scans to register")
     parser.add_argument("--skip", nargs="*", default=[], choices=["registration", "interpolation", "ablation",
                                                                    "sheet"])
@@ -306,10 +308,11 @@ def main(argv=None):
                         help="a float64 build of the same basis (python -m bases.build --keep-full DIR): the scans "
                              "are registered with both, to show the shipped precision changes nothing")
     parser.add_argument("--card", action="store_true",
-                        help="write the measured accuracy into the bundled basis' card (bases/<basis>.json)")
+                        help="write the measured accuracy into the basis' card (the .json beside the .npz)")
     args = parser.parse_args(argv)
-    if args.card and args.basis != "humanoid":
-        parser.error("--card writes into bases/humanoid.json: it needs --basis humanoid")
+    if args.basis is None:
+        parser.error("the humanoid mannequin is no longer bundled: build it with python -m bases.build humanoid "
+                     "-o DIR and give --basis DIR/humanoid.npz")
     import torch
 
     torch.set_num_threads(args.threads)
@@ -364,10 +367,10 @@ def main(argv=None):
 
 
 def write_card_accuracy(name, results, measured_by="python -m bench.humanoid_accuracy --card"):
-    """Record the measured accuracy in the bundled basis' JSON card (bases/<name>.json)."""
-    from bareesa.basis_io import BUNDLED_DIR
+    """Record the measured accuracy in a basis' JSON card (the .json beside the basis' .npz)."""
+    from bareesa.basis_io import resolve_basis_path
 
-    path = BUNDLED_DIR / f"{name}.json"
+    path = resolve_basis_path(name).with_suffix(".json")
     card = json.loads(path.read_text())
     # parts skipped in this run (--skip) keep their last measurement
     summary = dict(card.get("accuracy", {}))

@@ -9,7 +9,7 @@ correction is below it. The same shots at 2 and 4 substeps per frame give the ti
 error next to it, and the largest change of metric speed between consecutive steps
 (``ShootingReport.max_speed_change``) at each resolution, which chooses ``shooting.SPEED_TOL``.
 
-    python -m bench.shooting_tolerance [--basis humanoid] [--seeds 8] [--steps 8] [--threads 2] [--device cuda]
+    python -m bench.shooting_tolerance [--basis NAME|NPZ] [--seeds 8] [--steps 8] [--threads 2] [--device cuda]
 """
 
 import argparse

@@ -8,7 +8,7 @@ and CPU seconds (CPU over all threads of this process) and an accuracy or outcom
 ``--paper`` adds the paper-scale problem of ``bench.registration_speed`` (6,890 vertices, P = 170,
 55k-face scan) as a second table.
 
-    python -m bench.user_speed [--basis humanoid] [--paper] [--bodies SEED ...] [--device cpu] [--threads 2]
+    python -m bench.user_speed [--basis NAME|NPZ] [--paper] [--bodies SEED ...] [--device cpu] [--threads 2]
                                [--skip ...]
 """
 
@@ -138,7 +138,7 @@ def main():
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--resolution", type=float, default=0.009,
-                        help="scan remeshing pitch (share of the size; 0.009 gives ~50k faces on the humanoid)")
+                        help="scan remeshing pitch (share of the size; 0.009 gives 50-65k faces on the human)")
     parser.add_argument("--skip", nargs="*", default=(), choices=TASKS)
     parser.add_argument("--bodies", type=int, nargs="*", default=(), metavar="SEED",
                         help="also register a simulated scan of the random body of each seed (accuracy over many)")

@@ -1,6 +1,6 @@
 """The headless demo runs end to end (on the tiny test basis, so it is quick) and renders its pictures.
 
-The README's demo (``tools/demo_blender.py``) runs the same code on the bundled humanoid.
+The README's demo (``tools/demo_blender.py``) runs the same code on the bundled default, `human`.
 """
 
 import struct

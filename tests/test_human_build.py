@@ -108,6 +108,24 @@ def test_pose_matrices_put_each_rotation_on_the_mapped_anny_bones():
     assert angle == pytest.approx(28.0, abs=1e-6)
 
 
+def test_feet_and_hand_motions_turn_the_toes_out_and_curl_every_finger_on_both_sides():
+    bones = ["root"] + sorted({b for targets in human.BONE_MAP.values() for b, _ in targets})
+    named = {b for m in motions.HUMAN_TRAIN_MOTIONS + motions.HUMAN_TEST_MOTIONS
+             for u in np.linspace(0, 1, 17) for b in motions.pose_at(m, u)[0]}
+    assert named <= set(human.BONE_MAP)  # every bone a motion rotates reaches Anny's rig
+    feet, _ = human.pose_matrices("feet_turn", np.array([1 / 8]), bones)  # the toes-out peak
+    forward = np.array([0.0, -1.0, 0.0])
+    for side, sign in (("L", 1), ("R", -1)):
+        turned = feet[0, bones.index(f"upperleg01.{side}"), :3, :3] @ feet[0, bones.index(f"foot.{side}"), :3, :3]
+        assert sign * (turned @ forward)[0] > math.sin(math.radians(40))  # toes out by more than 40 deg
+    fist, _ = human.pose_matrices("hand_gestures", np.array([1 / 8]), bones)
+    for side in "LR":
+        for finger in range(1, 6):
+            for joint in range(1, 4):
+                r = fist[0, bones.index(f"finger{finger}-{joint}.{side}"), :3, :3]
+                assert math.degrees(math.acos((np.trace(r) - 1) / 2)) > 20, (side, finger, joint)
+
+
 def test_bases_build_names_the_human_and_refuses_an_unknown_basis(capsys):
     from bases.build.__main__ import BUILDERS, DEFAULT, main
 

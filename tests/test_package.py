@@ -157,7 +157,7 @@ import sys
 import bareesa
 from bareesa import basis_io
 print(bareesa.__file__)
-for name in ("human", "humanoid", "deformables"):
+for name in ("human", "deformables"):
     basis = bareesa.load_basis(name)
     assert basis.n_fields > 0, name
     print(basis_io.resolve_basis_path(name).resolve())
@@ -197,5 +197,5 @@ def test_wheel_installs_and_runs_without_the_checkout(tmp_path):
     site = site.resolve()
     assert Path(module_file).resolve().is_relative_to(site / "bareesa")
     assert [Path(p) for p in basis_paths] == [site / "bareesa" / "bases" / f"{n}.npz"
-                                             for n in ("human", "humanoid", "deformables")]
+                                             for n in ("human", "deformables")]
     assert last == "no core"

@@ -85,7 +85,10 @@ for _s in "LR":
     BONE_MAP.update({f"clavicle.{_s}": [(f"clavicle.{_s}", 1.0)], f"upper_arm.{_s}": [(f"upperarm01.{_s}", 1.0)],
                      f"forearm.{_s}": [(f"lowerarm01.{_s}", 1.0)], f"hand.{_s}": [(f"wrist.{_s}", 1.0)],
                      f"thigh.{_s}": [(f"upperleg01.{_s}", 1.0)], f"shin.{_s}": [(f"lowerleg01.{_s}", 1.0)],
-                     f"foot.{_s}": [(f"foot.{_s}", 1.0)]})
+                     f"foot.{_s}": [(f"foot.{_s}", 1.0)],
+                     f"toes.{_s}": [(f"toe{k}-1.{_s}", 1.0) for k in range(1, 6)],
+                     f"fingers.{_s}": [(f"finger{k}-{j}.{_s}", 1.0) for k in range(2, 6) for j in range(1, 4)],
+                     f"thumb.{_s}": [(f"finger1-{j}.{_s}", 1.0) for j in range(1, 4)]})
 
 
 # ------------------------------------------------------------------------------- Anny

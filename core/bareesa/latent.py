@@ -213,7 +213,7 @@ def latent_path_energy(template, faces, fields, path, weights, per_step=False):
 #: Relative weight of the latent metric in ``project_to_basis``. Held-out shapes projected by plain
 #: least squares load directions the data barely determines (fields of tiny variance) with large
 #: coefficients, along which the metric bends so fast that geodesic shooting from the code fails;
-#: this ridge keeps them near zero and moves a fit by about a millimetre on the bundled humanoid.
+#: this ridge keeps them near zero and moves a fit by about a millimetre on the humanoid mannequin (since retired).
 PROJECTION_RIDGE = 5e-3
 
 
