@@ -5,9 +5,10 @@ rotations per bone, given in the rest armature's (world) axes and composed in
 order, and a root offset. Bone names are the mannequin's (``hips``, ``spine``,
 ``chest``, ``neck``, ``head``, ``clavicle.L``, ``upper_arm.L``, ``forearm.L``,
 ``hand.L``, ``thigh.L``, ``shin.L``, ``foot.L`` and the ``.R`` side; the ``human``
-motions also move ``toes.L``, ``fingers.L`` and ``thumb.L``); a builder maps them onto its rig. Conventions: Z-up, facing -Y, left = +X; flexion of a
-downward bone about -X moves it forward (-Y); abduction of the left arm/leg is
-about -Y; the right side mirrors the left (axis (x, y, z) -> (x, -y, -z)).
+motions also move ``toes.L``, ``fingers.L`` and ``thumb.L``); a builder maps them
+onto its rig. Conventions: Z-up, facing -Y, left = +X; flexion of a downward bone
+about -X moves it forward (-Y); abduction of the left arm/leg is about -Y; the
+right side mirrors the left (axis (x, y, z) -> (x, -y, -z)).
 """
 
 import math
