@@ -261,9 +261,10 @@ def test_interpolate_and_extrapolate_keep_the_inputs_off_basis_detail(capsys, bu
 
 
 def test_interpolate_keeps_the_default_body_planted_unless_no_anchor(capsys, tmp_path):
-    """Rest -> the highest-reaching pose prototype (a jump: feet 7 cm up) on the bundled basis: the
-    CLI's frames lift the body steadily between the ends' heights; --no-anchor writes the geodesic as
-    solved, whose body floats above both ends (the H2 metric's L2 term keeps the centroid still)."""
+    """Rest -> the highest-reaching pose prototype (a jump, feet ~20 cm up) on the bundled basis: the
+    CLI's frames lift the lowest point steadily between the ends' heights; --no-anchor writes the
+    geodesic as solved, whose body floats about a centimetre higher mid-jump (the H2 metric's L2 term
+    keeps the centroid still; ``geodesics.anchor_path`` puts the body back where the line has it)."""
     from bareesa.geodesics import decode_path
     from bareesa.basis_io import DEFAULT_BASIS, load_basis
     from bareesa.mesh import load_mesh
@@ -274,23 +275,17 @@ def test_interpolate_keeps_the_default_body_planted_unless_no_anchor(capsys, tmp
     up = bodies[np.argmax(bodies[:, :, 2].max(1))]
     save_mesh(tmp_path / "rest.ply", b.template, b.faces)
     save_mesh(tmp_path / "up.ply", up, b.faces)
-    feet = b.template[:, 2] < b.template[:, 2].min() + 0.05
     ends = np.array([b.template[:, 2].min(), up[:, 2].min()])
-    # frames are paced by shape change, not evenly in time: each frame's feet are compared with the
-    # closest point of the straight blend of the ends' feet
-    lam = np.linspace(0, 1, 201)[:, None, None]
-    blend = (1 - lam) * b.template[feet] + lam * up[feet]  # (201, feet, 3)
-    overshoot, feet_off = {}, {}
+    lowest = {}
     for name, extra in (("planted", []), ("free", ["--no-anchor"])):
         rc, _, err = run(capsys, "interpolate", tmp_path / "rest.ply", tmp_path / "up.ply", "--steps", "5",
                          "-o", tmp_path / name, *extra)
         assert rc == 0, err
         frames = np.stack([load_mesh(p)[0] for p in sorted((tmp_path / name).glob("frame_*.ply"))])
-        lowest = frames[:, :, 2].min(1)
-        overshoot[name] = max(lowest.max() - ends.max(), ends.min() - lowest.min())
-        feet_off[name] = max(np.abs(frame[feet] - blend).max(axis=(1, 2)).min() for frame in frames)
-    assert overshoot["planted"] < 0.003 and overshoot["free"] > 0.01
-    assert feet_off["free"] > 1.5 * feet_off["planted"]
+        lowest[name] = frames[:, :, 2].min(1)
+    assert np.all(np.diff(lowest["planted"]) > 0)  # lifts steadily, within the ends' heights
+    assert lowest["planted"].max() <= ends.max() + 1e-4 and lowest["planted"].min() >= ends.min() - 1e-4
+    assert (lowest["free"] - lowest["planted"]).max() > 0.005
 
 
 def test_simulate_scan_writes_a_differently_meshed_scan(capsys, meshes, tmp_path):
