@@ -116,10 +116,11 @@ def schedule(basis, preset):
 
 
 def metric(basis, preset, custom=""):
-    """H2 weights: "BASIS" (the basis' own), "BODY", "FACE" or "CUSTOM" (a0,a1,b1,c1,d1,a2 in ``custom``)."""
+    """H2 weights: "BASIS" -> None (the basis' own: its ``weights`` for paths, its ``registration_weights``
+    for registration), "BODY", "FACE" or "CUSTOM" (a0,a1,b1,c1,d1,a2 in ``custom``)."""
     h2 = module("h2_metric")
     if preset == "BASIS":
-        return basis.weights
+        return None
     if preset == "CUSTOM":
         return h2.H2Weights.parse(custom)
     return h2.H2Weights.parse(preset.lower())

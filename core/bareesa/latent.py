@@ -74,6 +74,9 @@ class Basis:
     fit_check: dict = field(default_factory=dict)
     #: named anatomical landmarks of the template: {name: template vertex index}; {} none
     landmarks: dict = field(default_factory=dict)
+    #: H2 weights of registration's regularizer, the path energy from the template (None: ``weights``,
+    #: which geodesics, shooting and random bodies always use); the schedule's balance terms are tuned to it
+    registration_weights: H2Weights | None = None
 
     def __post_init__(self):
         validate_basis(self)
@@ -104,9 +107,15 @@ class Basis:
         stored = self.extras.get("template_metric")
         if stored is not None and np.array_equal(self.extras.get("template_metric_weights"), w.as_tuple()):
             return stored
+        others = self.__dict__.setdefault("_other_template_metrics", {})  # e.g. the registration weights'
+        if w.as_tuple() in others:
+            return others[w.as_tuple()]
         t, f, h = self.tensors()
         gram = h2_metric.assembled_metric_matrix(t, f, h, w).numpy()
-        self.extras["template_metric"], self.extras["template_metric_weights"] = gram, np.array(w.as_tuple())
+        if w == self.weights or stored is None:
+            self.extras["template_metric"], self.extras["template_metric_weights"] = gram, np.array(w.as_tuple())
+        else:
+            others[w.as_tuple()] = gram
         return gram
 
     def card(self):
@@ -117,6 +126,8 @@ class Basis:
                 "metric": list(self.weights.as_tuple()),
                 "schedule": [asdict(lv) for lv in self.schedule],
                 "scale": float(self.scale), "units": self.units, "provenance": self.provenance,
+                **({"registration_metric": list(H2Weights.parse(self.registration_weights).as_tuple())}
+                   if self.registration_weights is not None else {}),
                 **({"fit_check": self.fit_check} if self.fit_check else {}),
                 **({"landmarks": self.landmarks} if self.landmarks else {})}
 
@@ -157,6 +168,8 @@ def validate_basis(b):
     b.faces = f.astype(np.int64)
     b.groups = {k: (int(v[0]), int(v[1])) for k, v in (b.groups or {"all": (0, h.shape[0])}).items()}
     b.weights = H2Weights.parse(b.weights)
+    if b.registration_weights is not None:
+        b.registration_weights = H2Weights.parse(b.registration_weights)
     b.schedule = tuple(lv if isinstance(lv, Level) else Level(**lv) for lv in b.schedule)
 
 

@@ -216,7 +216,9 @@ def geodesic_between(basis, a, b, options=Options(), callback=None, cancel=None)
     weights = options.metric(basis)
     if isinstance(a, Scan) and isinstance(b, Scan):
         m = registration.symmetric_match(basis, (a.verts, a.faces), (b.verts, b.faces), steps=options.steps,
-                                         schedule=options.schedule, weights=weights, prealign=options.prealign,
+                                         schedule=options.schedule,
+                                         weights=None if options.weights is None else weights,  # basis' own two
+                                         prealign=options.prealign,
                                          kernel=options.kernel, callback=callback, cancel=cancel, dtype=options.dtype,
                                          device=options.device)
         ends = tuple(Code(e.code, registration=e) for e in matched_ends(basis, m, (a, b)))

@@ -1,0 +1,114 @@
+"""How the ``human`` basis' H2 weights were chosen: candidates compared on *training* motions.
+
+Held-out identities 5 and 6 (never seen by the build; ``bench.human_accuracy`` measures identities
+0-3) perform four training motions (arms raise front, punch, biceps curl, reach), regenerated with
+Anny (needs the ``[bases]`` extra). In fixed windows (``WINDOWS``: frames k -> k + 2h, h = 5, at
+24 fps) each candidate metric is compared as ``bench.human_accuracy`` compares methods: the CLI
+default (anchored geodesic + the ends' off-basis detail) against the latent line and the vertex
+blend, at a quarter, half and three quarters of the way; extrapolation from (k, k + h) to k + 2h and
+k + 3h (the shooting's failures are counted and left out). End codes are projections of the true
+frames with each candidate's metric (the projection's ridge uses it too).
+
+Usage: python -m bench.human_metric [--weights A0,A1,B1,C1,D1,A2 ...] [--threads 2]
+"""
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+IDENTITIES = (5, 6)
+MOTIONS = ("arms_raise_front", "punch", "biceps_curl", "reach")
+#: (identity, motion, first frame k, half span h)
+WINDOWS = ((5, "arms_raise_front", 6, 5), (5, "punch", 6, 5), (5, "biceps_curl", 24, 5), (5, "reach", 6, 5),
+           (6, "punch", 24, 5), (6, "reach", 24, 5), (6, "arms_raise_front", 24, 5), (6, "biceps_curl", 6, 5))
+CANDIDATES = ("1,1000,100,1,1,1", "1e4,1000,100,1,1,0.01", "1e5,1000,100,1,1,1")
+METHODS = ("CLI default", "latent line", "vertex blend")
+
+
+def training_motions():
+    """{(identity, motion): (T, N, 3) every frame} for the held-out identities in training motions."""
+    from bases.build import human as hb
+
+    gen = hb.Human(lambda *_: None)
+    _, test = hb.identities(model=gen.model)
+    return {(i, m): gen.motion(hb._take(test, i), m, step=1) for i in IDENTITIES for m in MOTIONS}
+
+
+def compare(basis, seqs, windows=WINDOWS):
+    """-> ({task: {method: [(hausdorff, chamfer, varifold) per window]}}, shooting failures)."""
+    from bareesa.errors import ShootingFailed
+    from bareesa.geodesics import anchor_path, decode_path, geodesic, straight_path
+    from bareesa.latent import detail_along, off_basis_detail, project_to_basis
+    from bareesa.shooting import anchor_extrapolation, extrapolate
+    from bench.humanoid_accuracy import _distances
+
+    t, f, h = basis.tensors()
+    faces = basis.faces
+    out = {task: {m: [] for m in METHODS} for task in ("interpolation", "extrapolation")}
+    failures = 0
+    for ident, motion, k, half in windows:
+        full = seqs[(ident, motion)].astype(np.float64)
+        seq = full[k:k + 3 * half + 1]
+        sigma = 0.025 * float(full[0][:, 2].max() - full[0][:, 2].min())
+        codes = project_to_basis(basis, seq)[0]
+        detail = off_basis_detail(basis, seq, codes)
+        n = 2 * half + 1
+        line = straight_path(codes[0], codes[2 * half], n)
+        g = geodesic(t, f, h, codes[0], codes[2 * half], basis.weights, steps=n, metric=basis.template_metric()).path
+        lam = np.linspace(0, 1, n)[:, None, None]
+        cli = decode_path(t, h, anchor_path(t, h, g, line)) + detail_along(detail[0], detail[2 * half], lam)
+        blend = (1 - lam) * seq[0] + lam * seq[2 * half]
+        probe = sorted({round(q * 2 * half) for q in (0.25, 0.5, 0.75)})
+        for name, path in zip(METHODS, (cli, decode_path(t, h, line), blend)):
+            out["interpolation"][name].append(np.mean([_distances(path[j], seq[j], faces, sigma) for j in probe], 0))
+        try:
+            ex = extrapolate(t, f, h, codes[0], codes[half], basis.weights, 2, substeps=min(half, 5))
+        except ShootingFailed:
+            failures += 1
+            continue
+        steps = np.arange(4)[:, None]
+        cli = decode_path(t, h, anchor_extrapolation(t, h, ex)) + detail_along(detail[0], detail[half], steps)
+        line = decode_path(t, h, codes[0] + steps * (codes[half] - codes[0]))
+        blend = seq[0] + steps[:, :, None] * (seq[half] - seq[0])
+        for name, path in zip(METHODS, (cli, line, blend)):
+            out["extrapolation"][name].append(
+                np.mean([_distances(path[2 + i], seq[(2 + i) * half], faces, sigma) for i in range(2)], 0))
+    return out, failures
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--weights", nargs="*", default=list(CANDIDATES), help="candidate metrics a0,a1,b1,c1,d1,a2")
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args(argv)
+    import torch
+
+    torch.set_num_threads(args.threads)
+    from bareesa.basis_io import load_basis
+    from bareesa.h2_metric import H2Weights
+
+    seqs = training_motions()
+    print("weights                      task           method        hausdorff_mm  chamfer_mm  varifold  n  "
+          "shooting failures  seconds")
+    for spec in args.weights:
+        basis = load_basis("human")
+        basis.weights = H2Weights.parse(spec)
+        start = time.perf_counter()
+        out, failures = compare(basis, seqs)
+        seconds = time.perf_counter() - start
+        for task, per_method in out.items():
+            for name, ds in per_method.items():
+                if ds:
+                    m = np.mean(ds, axis=0)
+                    print(f"{spec:28s} {task:14s} {name:13s} {1e3 * m[0]:12.1f} {1e3 * m[1]:11.2f} {m[2]:9.3g} "
+                          f"{len(ds):2d}  {failures:17d}  {seconds:7.0f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
