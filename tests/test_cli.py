@@ -263,8 +263,8 @@ def test_interpolate_and_extrapolate_keep_the_inputs_off_basis_detail(capsys, bu
 def test_interpolate_keeps_the_default_body_planted_unless_no_anchor(capsys, tmp_path):
     """Rest -> the highest-reaching pose prototype (a jump, feet ~20 cm up) on the bundled basis: the
     CLI's frames lift the lowest point steadily between the ends' heights; --no-anchor writes the
-    geodesic as solved instead, without ``geodesics.anchor_path`` (with the human's own weights the two
-    differ by about 2 mm mid-jump; with the paper's, whose L2 term is weaker, by about a centimetre)."""
+    geodesic as solved, whose body floats about a centimetre higher mid-jump (the H2 metric's L2 term
+    keeps the centroid still; ``geodesics.anchor_path`` puts the body back where the line has it)."""
     from bareesa.geodesics import decode_path
     from bareesa.basis_io import DEFAULT_BASIS, load_basis
     from bareesa.mesh import load_mesh
@@ -285,7 +285,7 @@ def test_interpolate_keeps_the_default_body_planted_unless_no_anchor(capsys, tmp
         lowest[name] = frames[:, :, 2].min(1)
     assert np.all(np.diff(lowest["planted"]) > 0)  # lifts steadily, within the ends' heights
     assert lowest["planted"].max() <= ends.max() + 1e-4 and lowest["planted"].min() >= ends.min() - 1e-4
-    assert np.abs(lowest["free"] - lowest["planted"]).max() > 0.001  # the flag reaches the solver
+    assert (lowest["free"] - lowest["planted"]).max() > 0.005
 
 
 def test_simulate_scan_writes_a_differently_meshed_scan(capsys, meshes, tmp_path):

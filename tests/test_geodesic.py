@@ -172,25 +172,22 @@ def test_keyframe_path_anchors_then_paces_evenly():
 
 
 def test_anchored_geodesic_of_the_bundled_human_keeps_the_feet_on_the_floor():
-    """Rest -> the three highest-reaching pose prototypes that stand on the floor: the anchored geodesic
-    (what the CLI and the add-on output) keeps the feet within 2 mm of where the straight line puts
-    them. (With the paper's weights the geodesic as solved sank them ~1.4 cm; with the human's own,
-    whose L2 term is stronger, it stays within ~2 mm by itself.)"""
+    """Rest -> the highest-reaching pose: the geodesic as solved sinks the feet (~1.4 cm), the anchored one does not."""
     b = basis_io.load_basis("human")
     t, f, h = b.tensors()
     protos = b.extras["pose_prototypes"]
-    bodies = geodesics.decode_path(t, h, protos)
-    standing = [i for i in np.argsort(-bodies[:, :, 2].max(1)) if abs(bodies[i, :, 2].min()) < 0.01][:3]
-    assert len(standing) == 3
+    up = protos[np.argmax(geodesics.decode_path(t, h, protos)[:, :, 2].max(1))]
     rest = np.zeros(b.n_fields)
+    g = geodesics.geodesic(t, f, h, rest, up, b.weights, steps=5, metric=b.template_metric())
+    line = geodesics.straight_path(rest, up, 5)
     feet = b.template[:, 2] < b.template[:, 2].min() + 0.05
-    for i in standing:
-        g = geodesics.geodesic(t, f, h, rest, protos[i], b.weights, steps=5, metric=b.template_metric())
-        line = geodesics.straight_path(rest, protos[i], 5)
-        anchored = geodesics.anchor_path(t, h, g.path, line)
-        gap = geodesics.decode_path(t, h, line)[:, feet, 2] - geodesics.decode_path(t, h, anchored)[:, feet, 2]
-        assert np.abs(np.median(gap, axis=1)).max() < 0.002
-        assert not np.allclose(anchored, line)  # a path of its own, not the line
+
+    def sink(path):  # the feet's median height below where the line puts them, per frame
+        gap = geodesics.decode_path(t, h, line)[:, feet, 2] - geodesics.decode_path(t, h, path)[:, feet, 2]
+        return np.abs(np.median(gap, axis=1))
+
+    assert sink(g.path).max() > 0.01
+    assert sink(geodesics.anchor_path(t, h, g.path, line)).max() < 0.005
 
 
 def _two_sphere_scans(seed=2):
