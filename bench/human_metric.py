@@ -1,4 +1,4 @@
-"""How the ``human`` basis' H2 weights were chosen: candidates compared on *training* motions.
+"""Candidate H2 weights for the ``human`` basis' geodesics, compared on *training* motions.
 
 Held-out identities 5 and 6 (never seen by the build; ``bench.human_accuracy`` measures identities
 0-3) perform four training motions (arms raise front, punch, biceps curl, reach), regenerated with
@@ -8,6 +8,9 @@ default (anchored geodesic + the ends' off-basis detail) against the latent line
 blend, at a quarter, half and three quarters of the way; extrapolation from (k, k + h) to k + 2h and
 k + 3h (the shooting's failures are counted and left out). End codes are projections of the true
 frames with each candidate's metric (the projection's ridge uses it too).
+
+It chose ``bases.build.human.MOTION_WEIGHTS`` (bench/README.md, 2026-12-05), not shipped yet: random
+bodies shot in that metric are ~10 times slower.
 
 Usage: python -m bench.human_metric [--weights A0,A1,B1,C1,D1,A2 ...] [--threads 2]
 """
