@@ -238,7 +238,8 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     [, weight])], adding weight * landmark_weight * A * sum_i w_i |S F(alpha)_i - T p_i|^2 / sum w
     (A the template area: comparable to the varifold of a surface offset by the same distance);
     scan_face_weights (G,) >= 0 (0 ignores a face, e.g. a floor); metric: H2 weights (default
-    the basis' ``registration_weights``, else its ``weights``); kernel: of the varifold, per level (``level_kernels``): "auto" (default) is binet
+    the basis' ``registration_weights``, else its ``weights``); kernel: of the varifold, per level
+    (``level_kernels``): "auto" (default) is binet
     (orientation-free) on every level, except that a noisy scan (``normal_spread`` above NOISY_SPREAD)
     is matched at the finest level with the oriented linear kernel, whose minimiser the noise does not
     bias; an oriented kernel on a level after the first runs on the scan's faces wound consistently and
