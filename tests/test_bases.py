@@ -79,7 +79,9 @@ def test_the_retired_mannequin_is_not_shipped_and_its_name_says_how_to_rebuild_i
 
 def test_bundled_bases_store_the_template_metric_of_their_own_weights():
     """Solvers precondition with the stored G-bar(0) (``Basis.template_metric``): where a bundled basis
-    stores one, it must be the metric of the weights in its card."""
+    stores one, it must be the metric of the weights in its card. The build computes it from float64
+    fields and the file keeps them in float16, whose rounding the metric's second differences amplify
+    to ~1 % of its largest entry on ``human``; other weights differ by tens of percent."""
     from bareesa.h2_metric import assembled_metric_matrix
 
     stored = []
@@ -90,7 +92,7 @@ def test_bundled_bases_store_the_template_metric_of_their_own_weights():
             stored.append(name)
             assert np.array_equal(b.extras["template_metric_weights"], b.weights.as_tuple())
             fresh = assembled_metric_matrix(*b.tensors(), b.weights).numpy()
-            assert np.abs(b.extras["template_metric"] - fresh).max() < 1e-3 * np.abs(fresh).max()
+            assert np.abs(b.extras["template_metric"] - fresh).max() < 0.03 * np.abs(fresh).max()
     assert "human" in stored
 
 
