@@ -102,7 +102,7 @@ class BareEsaSettings(bpy.types.PropertyGroup):
     frame_end: IntProperty(name="End", default=25, description="Last frame (when Own Frame Range is on)")
     anchor: BoolProperty(name="Keep Body Planted", default=True,
                          description="Keep the body's unmoving part where the straight line between the ends puts it "
-                                     "(the metric's L2 term otherwise lets the body sink ~1 cm when a limb moves)")
+                                     "(the metric's L2 term otherwise lets the body sink when a limb moves)")
     extrapolate_source: EnumProperty(name="Direction From", items=EXTRAPOLATE_SOURCES, default="AUTO",
                                      description="What gives the direction the motion is continued in")
     make_collection: BoolProperty(name="Also as meshes", default=False,

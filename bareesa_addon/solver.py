@@ -116,8 +116,8 @@ def schedule(basis, preset):
 
 
 def metric(basis, preset, custom=""):
-    """H2 weights: "BASIS" -> None (the basis' own: its ``weights`` for paths, its ``registration_weights``
-    for registration), "BODY", "FACE" or "CUSTOM" (a0,a1,b1,c1,d1,a2 in ``custom``)."""
+    """H2 weights: "BASIS" -> None (the basis' own: its ``weights`` for paths, its ``shape_metric``
+    for registration and random bodies), "BODY", "FACE" or "CUSTOM" (a0,a1,b1,c1,d1,a2 in ``custom``)."""
     h2 = module("h2_metric")
     if preset == "BASIS":
         return None

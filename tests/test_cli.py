@@ -263,7 +263,7 @@ def test_interpolate_and_extrapolate_keep_the_inputs_off_basis_detail(capsys, bu
 def test_interpolate_keeps_the_default_body_planted_unless_no_anchor(capsys, tmp_path):
     """Rest -> the highest-reaching pose prototype (a jump, feet ~20 cm up) on the bundled basis: the
     CLI's frames lift the lowest point steadily between the ends' heights; --no-anchor writes the
-    geodesic as solved, whose body floats about a centimetre higher mid-jump (the H2 metric's L2 term
+    geodesic as solved, whose body floats a few millimetres higher mid-jump (the H2 metric's L2 term
     keeps the centroid still; ``geodesics.anchor_path`` puts the body back where the line has it)."""
     from bareesa.geodesics import decode_path
     from bareesa.basis_io import DEFAULT_BASIS, load_basis
@@ -285,7 +285,7 @@ def test_interpolate_keeps_the_default_body_planted_unless_no_anchor(capsys, tmp
         lowest[name] = frames[:, :, 2].min(1)
     assert np.all(np.diff(lowest["planted"]) > 0)  # lifts steadily, within the ends' heights
     assert lowest["planted"].max() <= ends.max() + 1e-4 and lowest["planted"].min() >= ends.min() - 1e-4
-    assert (lowest["free"] - lowest["planted"]).max() > 0.005
+    assert (lowest["free"] - lowest["planted"]).max() > 0.001  # ~2 mm with the basis' motion weights
 
 
 def test_simulate_scan_writes_a_differently_meshed_scan(capsys, meshes, tmp_path):

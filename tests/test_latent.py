@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from bareesa import basis_building, basis_io, h2_metric, latent, synthetic
+from bareesa import basis_building, basis_io, h2_metric, latent, statistics, synthetic
 from bareesa.errors import InputError
 
 
@@ -221,24 +221,26 @@ def test_off_basis_detail_carried_along_reproduces_the_keyframes_and_the_vertex_
         detail_along(detail[0], detail[1][:-1], times)
 
 
-def test_registration_weights_are_saved_and_registration_regularizes_with_them(tmp_path, monkeypatch):
-    """A basis may regularize registration with other H2 weights than its geodesics use (``human``
-    does): they travel in the card, registration takes them by default, and their template metric
-    does not replace the stored one of the basis' own weights."""
+def test_shape_weights_are_saved_and_registration_and_random_bodies_use_them(tmp_path, monkeypatch):
+    """A basis may measure shapes from the template (registration's regularizer, random bodies) with
+    other H2 weights than its motion paths use (``human`` does): they travel in the card, registration
+    and random bodies take them by default, geodesics keep ``weights``, and their template metric does
+    not replace the stored one of the basis' own weights."""
+    from bareesa import workflows
     from bareesa.h2_metric import PRESETS, H2Weights
     from bareesa.registration import multiscale
 
     b, _ = synthetic.smooth_sphere_basis(subdivisions=1, n_fields=3)
-    assert b.registration_weights is None
-    b.registration_weights = H2Weights(2, 1, 1, 1, 1, 5)
+    assert b.shape_weights is None and b.shape_metric == b.weights
+    b.shape_weights = H2Weights(2, 1, 1, 1, 1, 5)
     g = b.template_metric()
     basis_io.save_basis(tmp_path / "b.npz", b)
     loaded = basis_io.load_basis(tmp_path / "b.npz")
-    assert loaded.registration_weights == H2Weights(2, 1, 1, 1, 1, 5) and loaded.weights == b.weights
-    assert json.loads((tmp_path / "b.json").read_text())["registration_metric"] == [2, 1, 1, 1, 1, 5]
-    other = loaded.template_metric(loaded.registration_weights)
+    assert loaded.shape_metric == H2Weights(2, 1, 1, 1, 1, 5) and loaded.weights == b.weights
+    assert json.loads((tmp_path / "b.json").read_text())["shape_metric"] == [2, 1, 1, 1, 1, 5]
+    other = loaded.template_metric(loaded.shape_weights)
     assert not np.allclose(other, g) and loaded.template_metric() is loaded.extras["template_metric"]
-    assert loaded.template_metric(loaded.registration_weights) is other  # kept for the next registration
+    assert loaded.template_metric(loaded.shape_weights) is other  # kept for the next registration
 
     class Seen(Exception):
         pass
@@ -246,8 +248,18 @@ def test_registration_weights_are_saved_and_registration_regularizes_with_them(t
     def fake_problem(basis, sv, sf, face_w, marks, landmark_weight, metric, *rest):
         raise Seen(metric)
 
+    def fake_shoot(template, faces, fields, alpha0, velocity, weights, *args, **kwargs):
+        raise Seen(weights)
+
     monkeypatch.setattr(multiscale, "RegistrationProblem", fake_problem)
+    monkeypatch.setattr(workflows.shooting, "shoot", fake_shoot)
+    loaded.extras.update(statistics.fit_distribution(np.random.default_rng(0).normal(size=(6, 3)), loaded.groups,
+                                                     {g: 1 for g in loaded.groups}))
     for given, expected in ((None, H2Weights(2, 1, 1, 1, 1, 5)), ("body", PRESETS["body"])):
         with pytest.raises(Seen) as seen:
             multiscale.register(loaded, loaded.template, loaded.faces, prealign=False, metric=given)
         assert seen.value.args[0] == expected
+        with pytest.raises(Seen) as seen:
+            workflows.random_bodies(loaded, 1, seed=0, options=workflows.Options(weights=given))
+        assert seen.value.args[0] == expected
+        assert workflows.Options(weights=given).metric(loaded) == (loaded.weights if given is None else expected)

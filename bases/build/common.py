@@ -27,7 +27,8 @@ def elastic_paths(pairs, faces, weights="body", steps=4, max_iter=60, log=None):
 
 
 def fit_basis_distribution(basis, frames, n_components, max_samples=120, steps=4, max_iter=40, seed=0):
-    """Gaussian mixtures on the log maps (initial velocities at the template) of training frames.
+    """Gaussian mixtures on the log maps (initial velocities at the template, in the basis'
+    ``shape_metric``) of training frames.
 
     frames (M, N, 3) in template topology; at most ``max_samples`` (evenly chosen)
     are used; each log map is the initial velocity of a latent geodesic 0 -> code
@@ -39,8 +40,9 @@ def fit_basis_distribution(basis, frames, n_components, max_samples=120, steps=4
     codes = project_to_basis(basis, frames[pick])[0]
     codes = codes[np.abs(codes).sum(1) > 1e-9]
     t, f, h = basis.tensors()
-    metric = basis.template_metric()  # preconditioning once for all (5x faster than G-bar at each mean code)
-    velocities = np.stack([initial_velocity(geodesic(t, f, h, np.zeros_like(c), c, basis.weights, steps=steps,
+    weights = basis.shape_metric  # random bodies are shot from the template in it
+    metric = basis.template_metric(weights)  # preconditioning once for all (5x faster than G-bar at each code)
+    velocities = np.stack([initial_velocity(geodesic(t, f, h, np.zeros_like(c), c, weights, steps=steps,
                                                      max_iter=max_iter, metric=metric).path) for c in codes])
     dist = fit_distribution(velocities, basis.groups, n_components, seed=seed)
     dist["distribution_samples"] = np.asarray(len(codes))

@@ -37,6 +37,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from bareesa.basis_building import build_basis
+from bareesa.h2_metric import H2Weights
 from bareesa.latent import PAPER_BODY_SCHEDULE
 from bareesa.statistics import pose_prototypes
 
@@ -46,15 +47,16 @@ from .parts import PARTS_NOTE, human_parts
 from .motions import HUMAN_TEST_MOTIONS, HUMAN_TRAIN_MOTIONS, pose_at
 
 NAME = "human"
-#: The basis' H2 metric (a0, a1, b1, c1, d1, a2): the paper's body weights. Measured alternative, not
-#: shipped (bench/README.md, 2026-12-05): on this template the second-order term is dominated by the
-#: fingers (86 % of a straight latent path's energy in a held-out wave lies in the hands), and with
-#: MOTION_WEIGHTS (chosen with ``bench.human_metric`` on training motions) the CLI's geodesics beat the
-#: latent line and the vertex blend on held-out motions in interpolation and extrapolation; but
-#: shooting random bodies from the template in that metric took ~10 times longer, and registration
-#: regularized with it lost a held-out lunge (35 mm), so it needs its own solver work first.
-WEIGHTS = (1.0, 1000.0, 100.0, 1.0, 1.0, 1.0)
+#: The basis' H2 metrics (a0, a1, b1, c1, d1, a2). On this template the paper's body weights
+#: (SHAPE_WEIGHTS) put most of the second-order term in the fingers (86 % of a straight latent path's
+#: energy in a held-out wave lies in the hands), so their geodesics bend the fingers and move the
+#: limbs elsewhere. MOTION_WEIGHTS (chosen with ``bench.human_metric`` on training motions;
+#: bench/README.md) are the metric of motion paths: with them the CLI's geodesics beat the latent line
+#: and the vertex blend on held-out motions. Registration regularized with them lost a held-out lunge
+#: (35 mm) and random bodies shot in them took ~10 times longer, so shapes measured from the template
+#: (registration, the distribution of random bodies) keep the paper's weights (``Basis.shape_weights``).
 MOTION_WEIGHTS = (1e4, 1000.0, 100.0, 1.0, 1.0, 0.01)
+SHAPE_WEIGHTS = (1.0, 1000.0, 100.0, 1.0, 1.0, 1.0)
 SEED = 17
 TOPOLOGY = "anny-noeyes-notongue"
 CAVITIES = ("eye_cavity.L", "eye_cavity.R", "mouth_cavity")
@@ -482,9 +484,12 @@ def build(pose_components=POSE_COMPONENTS, shape_components=SHAPE_COMPONENTS, lo
         provenance["template_quality"] = human.quality
     log("human: PCA")
     basis = build_basis(template, faces, {"pose": list(data["sequences"].values()), "shape": shape_paths},
-                        {"pose": pose_components, "shape": shape_components}, weights=WEIGHTS, scale=height,
-                        name=NAME, units="m", schedule=HUMAN_SCHEDULE, provenance=provenance,
+                        {"pose": pose_components, "shape": shape_components}, weights=MOTION_WEIGHTS,
+                        scale=height, name=NAME, units="m", schedule=HUMAN_SCHEDULE, provenance=provenance,
                         landmarks=human_landmarks(template))
+    basis.shape_weights = H2Weights(*SHAPE_WEIGHTS)
+    basis.provenance["metrics"] = ("metric: motion paths (chosen with bench.human_metric on training motions); "
+                                   "shape_metric: registration and random bodies (the paper's body weights)")
     basis.provenance["landmarks"] = LANDMARK_NOTES[NAME]
     basis.provenance["groups"]["shape"]["construction"] = "elastic H2 geodesics template -> identity (3 meshes)"
     if human is not None:

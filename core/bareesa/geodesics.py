@@ -219,8 +219,9 @@ def anchor_path(template, fields, path, reference, fixed=(0, -1)):
     reference path (the straight line) puts it: (T, P), (T, P) -> (T, P).
 
     The L2 (a0) term of the metric prefers velocity fields of zero mean, so a geodesic
-    keeps the body's centroid still: when an arm rises, the rest of the body sinks by
-    ~1 cm mid-path (the feet go through the floor). Each frame is shifted, along the
+    keeps the body's centroid still: when an arm rises, the rest of the body sinks mid-path
+    (the feet go through the floor; centimetres in the paper's body weights, millimetres in the
+    ``human`` basis' motion weights). Each frame is shifted, along the
     translations the basis spans (``translation_codes``), by the coordinate-wise median
     of reference minus frame over the vertices: the median follows the majority of the
     body, which does not move in the reference, and ignores the limbs that do. The

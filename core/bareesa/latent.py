@@ -74,12 +74,18 @@ class Basis:
     fit_check: dict = field(default_factory=dict)
     #: named anatomical landmarks of the template: {name: template vertex index}; {} none
     landmarks: dict = field(default_factory=dict)
-    #: H2 weights of registration's regularizer, the path energy from the template (None: ``weights``,
-    #: which geodesics, shooting and random bodies always use); the schedule's balance terms are tuned to it
-    registration_weights: H2Weights | None = None
+    #: H2 weights for shapes reached from the template (None: ``weights``): registration's regularizer,
+    #: the log map and the shooting of random bodies; ``weights`` stays the metric of motion paths
+    #: (geodesics between frames, extrapolation). The schedule's balance terms are tuned to it
+    shape_weights: H2Weights | None = None
 
     def __post_init__(self):
         validate_basis(self)
+
+    @property
+    def shape_metric(self):
+        """The H2 weights measured from the template: ``shape_weights``, else ``weights``."""
+        return self.shape_weights or self.weights
 
     @property
     def n_fields(self):
@@ -107,7 +113,7 @@ class Basis:
         stored = self.extras.get("template_metric")
         if stored is not None and np.array_equal(self.extras.get("template_metric_weights"), w.as_tuple()):
             return stored
-        others = self.__dict__.setdefault("_other_template_metrics", {})  # e.g. the registration weights'
+        others = self.__dict__.setdefault("_other_template_metrics", {})  # e.g. the shape weights'
         if w.as_tuple() in others:
             return others[w.as_tuple()]
         t, f, h = self.tensors()
@@ -126,8 +132,8 @@ class Basis:
                 "metric": list(self.weights.as_tuple()),
                 "schedule": [asdict(lv) for lv in self.schedule],
                 "scale": float(self.scale), "units": self.units, "provenance": self.provenance,
-                **({"registration_metric": list(H2Weights.parse(self.registration_weights).as_tuple())}
-                   if self.registration_weights is not None else {}),
+                **({"shape_metric": list(H2Weights.parse(self.shape_weights).as_tuple())}
+                   if self.shape_weights is not None else {}),
                 **({"fit_check": self.fit_check} if self.fit_check else {}),
                 **({"landmarks": self.landmarks} if self.landmarks else {})}
 
@@ -168,8 +174,8 @@ def validate_basis(b):
     b.faces = f.astype(np.int64)
     b.groups = {k: (int(v[0]), int(v[1])) for k, v in (b.groups or {"all": (0, h.shape[0])}).items()}
     b.weights = H2Weights.parse(b.weights)
-    if b.registration_weights is not None:
-        b.registration_weights = H2Weights.parse(b.registration_weights)
+    if b.shape_weights is not None:
+        b.shape_weights = H2Weights.parse(b.shape_weights)
     b.schedule = tuple(lv if isinstance(lv, Level) else Level(**lv) for lv in b.schedule)
 
 

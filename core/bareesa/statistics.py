@@ -101,14 +101,15 @@ def distinct_codes(basis, frames):
 
 
 def fit_training_distribution(basis, sequences, components=None, seed=0):
-    """Gaussian mixtures on the log maps of a basis' own training frames (random generation).
+    """Gaussian mixtures on the log maps of a basis' own training frames (random generation), in its
+    ``shape_metric``.
 
     sequences: list of (T_i, N, 3) registered frames; components {group: K} (paper: pose 10, shape 6).
     """
     codes = distinct_codes(basis, np.concatenate([np.asarray(s) for s in sequences]))
     codes = codes[np.abs(codes).sum(1) > 0]
     t, f, h = basis.tensors()
-    velocities = log_map(t, f, h, codes, basis.weights, steps=4)
+    velocities = log_map(t, f, h, codes, basis.shape_metric, steps=4)
     return fit_distribution(velocities, basis.groups, components or {"pose": 10, "shape": 6}, seed=seed)
 
 

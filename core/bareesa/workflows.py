@@ -86,8 +86,13 @@ class Options:
         return basis.tensors(dtype=self.path_dtype or self.dtype, device=self.device)
 
     def metric(self, basis):
-        """The H2 weights to solve with."""
+        """The H2 weights to solve paths with (the basis' ``weights`` unless given)."""
         return basis.weights if self.weights is None else H2Weights.parse(self.weights)
+
+    def shape_metric(self, basis):
+        """The H2 weights measured from the template (registration, log maps, random bodies): the
+        basis' ``shape_metric`` unless given."""
+        return basis.shape_metric if self.weights is None else H2Weights.parse(self.weights)
 
     def tensors(self, basis):
         """The basis' (template (N, 3), faces (F, 3), fields (P, N, 3)) on this device and dtype."""
@@ -393,12 +398,13 @@ class RandomBodies:
 
 def random_bodies(basis, n, seed, options=Options(), fit=None, components=1, shoot_steps=8, callback=None,
                   cancel=None):
-    """n seeded random bodies (``sample_bodies``: retried, replaced draws counted) from the basis'
-    stored distribution, or from a mixture of ``components`` per group fitted to the initial
-    velocities (``statistics.log_map``) of the codes of the inputs ``fit``: -> RandomBodies."""
+    """n seeded random bodies (``sample_bodies``: retried, replaced draws counted), shot from the
+    template in the basis' ``shape_metric``, from its stored distribution or from a mixture of
+    ``components`` per group fitted to the initial velocities (``statistics.log_map``) of the codes of
+    the inputs ``fit``: -> RandomBodies."""
     monitor = Monitor("random bodies", callback, cancel)
     template, faces, fields = options.tensors(basis)
-    weights = options.metric(basis)
+    weights = options.shape_metric(basis)  # the metric the stored distribution was fitted in
     if fit is None:
         distribution, lo = stored_distribution(basis), 0.0
         if not distribution:

@@ -238,7 +238,7 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     [, weight])], adding weight * landmark_weight * A * sum_i w_i |S F(alpha)_i - T p_i|^2 / sum w
     (A the template area: comparable to the varifold of a surface offset by the same distance);
     scan_face_weights (G,) >= 0 (0 ignores a face, e.g. a floor); metric: H2 weights (default
-    the basis' ``registration_weights``, else its ``weights``); kernel: of the varifold, per level
+    the basis' ``shape_metric``); kernel: of the varifold, per level
     (``level_kernels``): "auto" (default) is binet
     (orientation-free) on every level, except that a noisy scan (``normal_spread`` above NOISY_SPREAD)
     is matched at the finest level with the oriented linear kernel, whose minimiser the noise does not
@@ -274,7 +274,7 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     kernels = level_kernels(kernel, len(levels), noisy=spread > NOISY_SPREAD)
     if binning not in ("auto", True, False):
         raise InputError(f"binning must be 'auto', True or False, got {binning!r}")
-    metric = H2Weights.parse((basis.registration_weights or basis.weights) if metric is None else metric)
+    metric = H2Weights.parse(basis.shape_metric if metric is None else metric)
     refine_transform = prealign if refine_transform is None else bool(refine_transform)
     path = np.zeros((2, basis.n_fields))
     if init_code is not None:

@@ -61,7 +61,7 @@ def symmetric_match(basis, scan0, scan1, steps=10, schedule=None, weights=None, 
     Gamma(F(alpha_1), q1)] + E(alpha) is minimised jointly over the whole path at the finest level
     of the schedule, with the finest kernel each scan's registration used (``register``'s ``kernel``;
     an oriented one on the scan's faces turned like its registration). weights: the H2 weights of E
-    and of the registrations (default the basis': ``weights`` for E, ``registration_weights`` for the
+    and of the registrations (default the basis': ``weights`` for E, ``shape_metric`` for the
     registrations); dtype, device: of the objective.
     """
     start = time.perf_counter()
@@ -69,7 +69,7 @@ def symmetric_match(basis, scan0, scan1, steps=10, schedule=None, weights=None, 
         raise InputError(f"a path needs at least 2 time points, got {steps}")
     monitor = Monitor("symmetric matching", callback, cancel)
     levels = tuple(basis.schedule if schedule is None else schedule)
-    given = weights  # the ends' registrations use the basis' registration weights unless weights are given
+    given = weights  # the ends' registrations use the basis' shape metric unless weights are given
     weights = H2Weights.parse(basis.weights if weights is None else weights)
     level_kernels(kernel, len(levels))  # checked before any solve
     options = dict(schedule=levels, prealign=prealign, metric=given, kernel=kernel, cancel=cancel, dtype=dtype,
