@@ -46,13 +46,10 @@ def training_motions():
 def compare(basis, seqs, windows=WINDOWS):
     """-> ({task: {method: [(hausdorff, chamfer, varifold) per window]}}, shooting failures)."""
     from bareesa.errors import ShootingFailed
-    from bareesa.geodesics import anchor_path, decode_path, geodesic, straight_path
-    from bareesa.latent import detail_along, off_basis_detail, project_to_basis
-    from bareesa.shooting import anchor_extrapolation, extrapolate
-    from bench.humanoid_accuracy import _distances
+    from bareesa.latent import off_basis_detail, project_to_basis
+    from bench.humanoid_accuracy import extrapolation_window, interpolation_window
 
-    t, f, h = basis.tensors()
-    faces = basis.faces
+    shown = dict(zip(METHODS, ("H2 anchored + detail", "latent line", "vertex blend")))  # this bench's name -> the window's
     out = {task: {m: [] for m in METHODS} for task in ("interpolation", "extrapolation")}
     failures = 0
     for ident, motion, k, half in windows:
@@ -61,27 +58,16 @@ def compare(basis, seqs, windows=WINDOWS):
         sigma = 0.025 * float(full[0][:, 2].max() - full[0][:, 2].min())
         codes = project_to_basis(basis, seq)[0]
         detail = off_basis_detail(basis, seq, codes)
-        n = 2 * half + 1
-        line = straight_path(codes[0], codes[2 * half], n)
-        g = geodesic(t, f, h, codes[0], codes[2 * half], basis.weights, steps=n, metric=basis.template_metric()).path
-        lam = np.linspace(0, 1, n)[:, None, None]
-        cli = decode_path(t, h, anchor_path(t, h, g, line)) + detail_along(detail[0], detail[2 * half], lam)
-        blend = (1 - lam) * seq[0] + lam * seq[2 * half]
-        probe = sorted({round(q * 2 * half) for q in (0.25, 0.5, 0.75)})
-        for name, path in zip(METHODS, (cli, decode_path(t, h, line), blend)):
-            out["interpolation"][name].append(np.mean([_distances(path[j], seq[j], faces, sigma) for j in probe], 0))
+        found = interpolation_window(basis, seq, codes, detail, 0, half, sigma)
+        for name in METHODS:
+            out["interpolation"][name].append(found[shown[name]])
         try:
-            ex = extrapolate(t, f, h, codes[0], codes[half], basis.weights, 2, substeps=min(half, 5))
+            found = extrapolation_window(basis, seq, codes, detail, 0, half, [2 * half, 3 * half], sigma)
         except ShootingFailed:
             failures += 1
             continue
-        steps = np.arange(4)[:, None]
-        cli = decode_path(t, h, anchor_extrapolation(t, h, ex)) + detail_along(detail[0], detail[half], steps)
-        line = decode_path(t, h, codes[0] + steps * (codes[half] - codes[0]))
-        blend = seq[0] + steps[:, :, None] * (seq[half] - seq[0])
-        for name, path in zip(METHODS, (cli, line, blend)):
-            out["extrapolation"][name].append(
-                np.mean([_distances(path[2 + i], seq[(2 + i) * half], faces, sigma) for i in range(2)], 0))
+        for name in METHODS:
+            out["extrapolation"][name].append(found[shown[name]])
     return out, failures
 
 

@@ -120,6 +120,52 @@ def monotone_segments(seq, min_frames=8, reverse=0.5):
     return [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b - a >= min_frames]
 
 
+#: the methods ``interpolation_window`` and ``extrapolation_window`` compare; "H2 anchored + detail" is the CLI's
+METHODS = ("H2 geodesic", "H2 anchored", "H2 anchored + detail", "latent line", "vertex blend")
+
+
+def interpolation_window(basis, seq, codes, detail, k, half, sigma):
+    """Every method's path k -> k + 2h against the true frames at a quarter, half and three quarters of
+    the way: seq (T, N, 3), codes (T, P) and detail (T, N, 3) of its frames -> {method: (hausdorff,
+    chamfer, varifold)} (``interpolation_rows`` explains the methods)."""
+    from bareesa.geodesics import anchor_path, decode_path, geodesic, straight_path
+    from bareesa.latent import detail_along
+
+    t, f, h = basis.tensors()
+    n = 2 * half + 1
+    line = straight_path(codes[k], codes[k + 2 * half], n)
+    g = geodesic(t, f, h, codes[k], codes[k + 2 * half], basis.weights, steps=n, metric=basis.template_metric()).path
+    lam = np.linspace(0, 1, n)[:, None, None]
+    blend = (1 - lam) * seq[k] + lam * seq[k + 2 * half]
+    carried = detail_along(detail[k], detail[k + 2 * half], lam)
+    anchored, on_line = decode_path(t, h, anchor_path(t, h, g, line)), decode_path(t, h, line)
+    paths = (decode_path(t, h, g), anchored, anchored + carried, on_line, blend)
+    assert np.allclose(on_line + carried, blend, atol=1e-9)
+    probe = sorted({round(q * 2 * half) for q in (0.25, 0.5, 0.75)})
+    return {name: np.mean([_distances(path[j], seq[k + j], basis.faces, sigma) for j in probe], axis=0)
+            for name, path in zip(METHODS, paths)}
+
+
+def extrapolation_window(basis, seq, codes, detail, k, half, targets, sigma):
+    """Every method's continuation of (k, k + h) against the true frames ``targets`` (k + 2h, k + 3h,
+    ...): -> {method: (hausdorff, chamfer, varifold)}; raises ShootingFailed when the shot does not
+    converge."""
+    from bareesa.geodesics import decode_path
+    from bareesa.latent import detail_along
+    from bareesa.shooting import anchor_extrapolation, extrapolate
+
+    t, f, h = basis.tensors()
+    ex = extrapolate(t, f, h, codes[k], codes[k + half], basis.weights, len(targets), substeps=min(half, 5))
+    steps = np.arange(len(targets) + 2)[:, None]
+    line = codes[k] + steps * (codes[k + half] - codes[k])
+    blend = seq[k] + steps[:, :, None] * (seq[k + half] - seq[k])
+    anchored = decode_path(t, h, anchor_extrapolation(t, h, ex))
+    carried = detail_along(detail[k], detail[k + half], steps)
+    paths = (decode_path(t, h, ex), anchored, anchored + carried, decode_path(t, h, line), blend)
+    return {name: np.mean([_distances(path[2 + i], seq[m], basis.faces, sigma) for i, m in enumerate(targets)],
+                          axis=0) for name, path in zip(METHODS, paths)}
+
+
 def interpolation_rows(basis, seqs, halves=(5, 10), stride=6):
     """The paper's Tables 3-4 protocol in miniature, on the monotone mini-sequences of held-out motions.
 
@@ -138,17 +184,11 @@ def interpolation_rows(basis, seqs, halves=(5, 10), stride=6):
     Rows per half span, and "all": the mean over every window of the task. A shot that does not
     converge is counted and left out for every method.
     """
-    from bareesa.geodesics import anchor_path, decode_path, geodesic, straight_path
-    from bareesa.latent import detail_along, off_basis_detail, project_to_basis
     from bareesa.errors import ShootingFailed
-    from bareesa.shooting import anchor_extrapolation, extrapolate
+    from bareesa.latent import off_basis_detail, project_to_basis
 
-    t, f, h = basis.tensors()
-    faces = basis.faces
-    methods = ("H2 geodesic", "H2 anchored", "H2 anchored + detail", "latent line", "vertex blend")
-    out = {(task, hf): {m: [] for m in methods} for task in ("interpolation", "extrapolation") for hf in halves}
+    out = {(task, hf): {m: [] for m in METHODS} for task in ("interpolation", "extrapolation") for hf in halves}
     failures = []
-    decode = lambda path: decode_path(t, h, path)  # noqa: E731
     for n_done, key in enumerate(sorted(seqs)):
         seq = seqs[key].astype(np.float64)
         segments = monotone_segments(seq)
@@ -160,48 +200,27 @@ def interpolation_rows(basis, seqs, halves=(5, 10), stride=6):
         for half in halves:
             for a, b in segments:
                 for k in range(a, b - 2 * half + 1, stride):
-                    n = 2 * half + 1
-                    line = straight_path(codes[k], codes[k + 2 * half], n)
-                    g = geodesic(t, f, h, codes[k], codes[k + 2 * half], basis.weights, steps=n,
-                                 metric=basis.template_metric()).path
-                    lam = np.linspace(0, 1, n)[:, None, None]
-                    blend = (1 - lam) * seq[k] + lam * seq[k + 2 * half]
-                    carried = detail_along(detail[k], detail[k + 2 * half], lam)
-                    anchored, on_line = decode(anchor_path(t, h, g, line)), decode(line)
-                    paths = (decode(g), anchored, anchored + carried, on_line, blend)
-                    assert np.allclose(on_line + carried, blend, atol=1e-9)
-                    probe = sorted({round(q * 2 * half) for q in (0.25, 0.5, 0.75)})
-                    for name, path in zip(methods, paths):
-                        d = np.mean([_distances(path[j], seq[k + j], faces, sigma) for j in probe], axis=0)
+                    for name, d in interpolation_window(basis, seq, codes, detail, k, half, sigma).items():
                         out[("interpolation", half)][name].append(d)
                     print(f"    interpolation {k} -> {k + 2 * half}: " + ", ".join(
-                        f"{m} {1e3 * out[('interpolation', half)][m][-1][1]:.1f}" for m in methods) + " mm Chamfer",
+                        f"{m} {1e3 * out[('interpolation', half)][m][-1][1]:.1f}" for m in METHODS) + " mm Chamfer",
                         flush=True)
                 if b - a < 2 * half:
                     continue
                 k = a
                 targets = [m for m in (k + 2 * half, k + 3 * half) if m <= b]
                 try:
-                    ex = extrapolate(t, f, h, codes[k], codes[k + half], basis.weights, len(targets),
-                                     substeps=min(half, 5))
+                    found = extrapolation_window(basis, seq, codes, detail, k, half, targets, sigma)
                 except ShootingFailed as err:
                     failures.append(f"{key}/k{k}/h{half}: {err}")
                     continue
-                steps = np.arange(len(targets) + 2)[:, None]
-                line = codes[k] + steps * (codes[k + half] - codes[k])
-                blend = seq[k] + steps[:, :, None] * (seq[k + half] - seq[k])
-                anchored = decode(anchor_extrapolation(t, h, ex))
-                carried = detail_along(detail[k], detail[k + half], steps)
-                paths = (decode(ex), anchored, anchored + carried, decode(line), blend)
-                for name, path in zip(methods, paths):
-                    d = np.mean([_distances(path[2 + i], seq[m], faces, sigma) for i, m in enumerate(targets)],
-                                axis=0)
+                for name, d in found.items():
                     out[("extrapolation", half)][name].append(d)
                 print(f"    extrapolation {k}, {k + half} -> {targets}: " + ", ".join(
-                    f"{m} {1e3 * out[('extrapolation', half)][m][-1][1]:.1f}" for m in methods) + " mm Chamfer",
+                    f"{m} {1e3 * out[('extrapolation', half)][m][-1][1]:.1f}" for m in METHODS) + " mm Chamfer",
                     flush=True)
     for task in ("interpolation", "extrapolation"):
-        out[(task, "all")] = {m: [d for hf in halves for d in out[(task, hf)][m]] for m in methods}
+        out[(task, "all")] = {m: [d for hf in halves for d in out[(task, hf)][m]] for m in METHODS}
     rows = []
     for (task, half), per_method in out.items():
         for name, ds in per_method.items():
