@@ -49,7 +49,8 @@ def compare(basis, seqs, windows=WINDOWS):
     from bareesa.latent import off_basis_detail, project_to_basis
     from bench.humanoid_accuracy import extrapolation_window, interpolation_window
 
-    shown = dict(zip(METHODS, ("H2 anchored + detail", "latent line", "vertex blend")))  # this bench's name -> the window's
+    # this bench's method names -> the window functions'
+    shown = dict(zip(METHODS, ("H2 anchored + detail", "latent line", "vertex blend")))
     out = {task: {m: [] for m in METHODS} for task in ("interpolation", "extrapolation")}
     failures = 0
     for ident, motion, k, half in windows:
