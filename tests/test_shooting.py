@@ -237,3 +237,25 @@ def test_a_solved_step_whose_speed_changes_is_kept_at_the_finest_refinement_and_
     assert np.abs(verts - ref_verts).max() < 0.005 * np.ptp(ref_verts[0], axis=0).max()
     # the default tolerance keeps nothing unchecked on the same motion
     assert shooting.extrapolate(t, f, h, a0, a1, b.weights, 2, with_report=True)[1].speed_relaxed == []
+
+
+def test_a_frame_refused_by_the_frame_check_stops_the_shot_there_and_names_it():
+    from bareesa.errors import FrameRejected
+
+    b = small_basis()
+    t, f, h = b.tensors()
+    velocity = np.array([1.5, -1.0, 0.8, 1.2])
+    plain = shooting.shoot(t, f, h, np.zeros(4), velocity, b.weights, steps=6)
+    seen = []
+
+    def check(code):  # refuses the third new frame (path index 4)
+        seen.append(np.array(code))
+        return "too far" if len(seen) == 3 else None
+
+    with pytest.raises(FrameRejected, match="frame 3 of 5: too far"):
+        shooting.shoot(t, f, h, np.zeros(4), velocity, b.weights, steps=6, frame_check=check)
+    # the check saw the frames the plain shot computes, in order, and none after the refused one
+    assert len(seen) == 3 and np.allclose(np.stack(seen), plain[2:5], rtol=0, atol=1e-12)
+    # a check that refuses nothing changes nothing
+    kept = shooting.shoot(t, f, h, np.zeros(4), velocity, b.weights, steps=6, frame_check=lambda code: None)
+    assert np.array_equal(kept, plain)

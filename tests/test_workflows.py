@@ -204,6 +204,22 @@ def test_a_random_body_that_creases_a_joint_flat_is_replaced_and_counted(sphere,
                                                                                  2.0 * basis.template)
 
 
+def test_a_shot_that_creases_a_joint_stops_at_that_frame(sphere, monkeypatch):
+    basis, _ = sphere
+    plain = workflows.random_bodies(basis, 3, 2, shoot_steps=4)
+    real_creased, seen = workflows.creased, []
+
+    def creased(template, faces, verts, **kwargs):  # the first frame the solver checks is creased
+        seen.append(verts)
+        return len(seen) == 1 or real_creased(template, faces, verts, **kwargs)
+
+    monkeypatch.setattr(workflows, "creased", creased)
+    bodies = workflows.random_bodies(basis, 3, 2, shoot_steps=4)
+    assert bodies.replaced == 1 and np.allclose(bodies.codes[:2], plain.codes[1:])
+    # the first draw's shot stopped at its first new frame; each kept draw: 3 new frames and its end
+    assert len(seen) == 1 + 3 * (3 + 1)
+
+
 def test_a_random_body_whose_faces_cross_is_replaced_and_counted(sphere, monkeypatch):
     from bareesa.mesh import self_intersections
 

@@ -25,5 +25,10 @@ class ShootingFailed(BareEsaError):
     """A step of the initial value problem did not converge or produced non-finite values."""
 
 
+class FrameRejected(BareEsaError):
+    """A frame of a shot was refused by the caller's check (``shooting.extrapolate(frame_check=)``); the
+    shot stops there."""
+
+
 class WorkersUnavailable(BareEsaError):
     """Worker processes could not be started (Dask missing or its local cluster failing)."""

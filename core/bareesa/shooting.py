@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .errors import InputError, ShootingFailed
+from .errors import FrameRejected, InputError, ShootingFailed
 from .geodesics import anchor_path, geodesic
 from .h2_metric import H2Weights, path_energy
 from .h2_metric import assembled_metric_matrix as jacobian_metric
@@ -335,9 +335,9 @@ class ShootingReport:
                 "metric_matrices": int(self.n_metric), "speed_relaxed": [int(k) for k in self.speed_relaxed]}
 
 
-def _march(stepper, start, n_frames, substeps, midpoint, monitor, max_substeps, speed_tol):
+def _march(stepper, start, n_frames, substeps, midpoint, monitor, max_substeps, speed_tol, frame_check=None):
     """Continue the discrete geodesic through start = (prev, cur), 1/substeps of a frame apart, by n_frames
-    frames: -> (frames (n_frames, P), ShootingReport).
+    frames: -> (frames (n_frames, P), ShootingReport). frame_check: see ``extrapolate``.
 
     A step is refused when it does not converge or when it changes the metric speed by more than
     ``speed_tol`` (a geodesic keeps its speed: a jump means the step is too long for the curvature,
@@ -379,6 +379,9 @@ def _march(stepper, start, n_frames, substeps, midpoint, monitor, max_substeps, 
             level, remaining, refinements = 2 * level, 2 * remaining, refinements + 1
             monitor.report(k / n_frames, f"frame {k + 1}/{n_frames}: step refined to 1/{level}")
         history = history[-3:]
+        reason = None if frame_check is None else frame_check(history[-1])
+        if reason:
+            raise FrameRejected(f"frame {k + 1} of {n_frames}: {reason}")
         frames.append(history[-1])
         per_frame.append(level)
         monitor.report((k + 1) / n_frames, f"frame {k + 1}/{n_frames}" + (f" (1/{level} steps)" if level > 1 else ""))
@@ -388,7 +391,7 @@ def _march(stepper, start, n_frames, substeps, midpoint, monitor, max_substeps, 
 
 def extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new, callback=None, cancel=None,
                 tol=STEP_TOL, substeps=1, anchor=False, accept_tol=ACCEPT_TOL, max_substeps=MAX_SUBSTEPS,
-                speed_tol=SPEED_TOL, with_report=False):
+                speed_tol=SPEED_TOL, with_report=False, frame_check=None):
     """Continue the discrete geodesic through alpha^0, alpha^1 by n_new steps: -> (n_new + 2, P)
     (and a ShootingReport when ``with_report``).
 
@@ -403,7 +406,9 @@ def extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new, callbac
     at ``tol`` or, when the iteration stalls, at ``accept_tol`` (see ACCEPT_TOL).
     ShootingFailed names the frame that could not be reached. anchor: keep the body's unmoving part
     where the straight latent line alpha^0 + k (alpha^1 - alpha^0) puts it (``geodesics.anchor_path``;
-    the predicted frames only).
+    the predicted frames only). frame_check: code (P,) -> None, or why a new frame is refused: the shot
+    stops there with FrameRejected (naming the frame), so that a caller that would discard the whole
+    path does not pay for the rest of it (``workflows.sample_bodies``: a joint creased flat).
     """
     p = fields.shape[0]
     try:
@@ -428,7 +433,8 @@ def extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new, callbac
         monitor.report(0.0, "geodesic through the two given codes")
         start = tuple(geodesic(template, faces, fields, *start, weights, steps=substeps + 1, cancel=cancel).path[-2:])
         start = (start[0], codes["alpha1"])
-    new, report = _march(stepper, start, n_new, substeps, midpoint, monitor, max(max_substeps, substeps), speed_tol)
+    new, report = _march(stepper, start, n_new, substeps, midpoint, monitor, max(max_substeps, substeps), speed_tol,
+                         frame_check)
     monitor.report(1.0, "done")
     out = np.concatenate([np.stack([codes["alpha0"], codes["alpha1"]]), new])
     if anchor:
@@ -445,15 +451,16 @@ def anchor_extrapolation(template, fields, path):
 
 
 def shoot(template, faces, fields, alpha0, velocity, weights, steps=10, callback=None, cancel=None,
-          with_report=False):
+          with_report=False, frame_check=None):
     """exp map: geodesic from alpha0 with initial velocity over unit time, steps >= 1: -> (steps + 1, P)
-    (and a ShootingReport when ``with_report``; steps that do not converge are refined as in ``extrapolate``)."""
+    (and a ShootingReport when ``with_report``; steps that do not converge are refined, and frame_check
+    refuses frames after the first, as in ``extrapolate``)."""
     if steps < 1:
         raise InputError(f"shooting needs at least one step, got {steps}")
     codes = _check_codes(fields.shape[0], alpha0=alpha0, velocity=velocity)
     alpha1 = codes["alpha0"] + codes["velocity"] / steps
     return extrapolate(template, faces, fields, codes["alpha0"], alpha1, weights, steps - 1, callback, cancel,
-                       with_report=with_report)
+                       with_report=with_report, frame_check=frame_check)
 
 
 def initial_velocity(path):

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from . import evaluation, geodesics, latent, registration, shooting, statistics
-from .errors import InputError
+from .errors import FrameRejected, InputError
 from .h2_metric import H2Weights
 from .mesh import self_intersections, triangle_quality
 from .progress import Monitor
@@ -351,7 +351,8 @@ def sample_bodies(template, faces, fields, distribution, groups, weights, n, see
     draw whose geodesic does not converge is shot again with 2 x steps and, failing that,
     replaced by a draw from a second stream of the same seed, and so is a draw whose body is
     ``creased`` or has more crossing faces than the template (``mesh.self_intersections``: a limb
-    through the body). -> (codes (n, P), replaced draws).
+    through the body); a shot stops at its first creased frame (its end would be creased too, and the
+    steps near a crease are refined and cost most). -> (codes (n, P), replaced draws).
     """
     monitor = Monitor("sample", callback, cancel)
     velocities = list(statistics.sample_velocities(distribution, groups, n, seed))
@@ -360,6 +361,14 @@ def sample_bodies(template, faces, fields, distribution, groups, weights, n, see
     template_np, faces_np = template.detach().cpu().double().numpy(), faces.detach().cpu().numpy()
     fields_np = fields.detach().cpu().double().numpy()
     allowed = len(self_intersections(template_np, faces_np))  # a template's own touching parts are not the draw's
+
+    def crease_check(code):
+        """Why a frame of the shot is refused: a joint creased flat stays creased to the end of the path
+        (every creased human shot measured), where the steps are refined and cost most."""
+        if creased(template_np, faces_np, template_np + np.tensordot(code, fields_np, axes=1)):
+            return "the body creases a joint flat"
+        return None
+
     while len(codes) < n:
         v = velocities.pop(0) if velocities else next(spares, None)
         if v is None:
@@ -369,7 +378,12 @@ def sample_bodies(template, faces, fields, distribution, groups, weights, n, see
         for k in (steps, 2 * steps):
             monitor.report(len(codes) / n, f"body {len(codes) + 1}/{n}" + (f" ({k} steps)" if k > steps else ""))
             try:
-                code = shooting.shoot(template, faces, fields, np.zeros_like(v), v, weights, steps=k, cancel=cancel)[-1]
+                code = shooting.shoot(template, faces, fields, np.zeros_like(v), v, weights, steps=k, cancel=cancel,
+                                      frame_check=crease_check)[-1]
+            except FrameRejected:
+                error = "their bodies crease a joint flat"
+                replaced += 1
+                break
             except shooting.ShootingFailed as err:
                 error = err
                 continue
