@@ -240,6 +240,51 @@ def test_symmetric_matchings_joint_solve_moves_the_ends_and_the_path_with_them()
     assert max(gammas) < 2 * max(r.varifold for r in regs)
 
 
+def _with_floor(scan, rot, seed=0):
+    """A scan of _two_sphere_scans with a square floor under it (the same frame): -> (verts, faces, weights (G,)),
+    the weights 1 on the scan's faces and 0 on the floor's."""
+    grid = np.stack(np.meshgrid(np.linspace(-1.5, 1.5, 9), np.linspace(-1.5, 1.5, 9), indexing="ij"), -1).reshape(-1, 2)
+    floor = np.column_stack([grid, np.full(len(grid), -1.3)])
+    floor = 2.0 * floor @ rot.T + [1.0, 0.0, -2.0]
+    quads = [(i * 9 + j, (i + 1) * 9 + j, (i + 1) * 9 + j + 1, i * 9 + j + 1) for i in range(8) for j in range(8)]
+    tris = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))]) + len(scan[0])
+    verts, faces = np.concatenate([scan[0], floor]), np.concatenate([scan[1], tris])
+    return verts, faces, np.r_[np.ones(len(scan[1])), np.zeros(len(tris))]
+
+
+def test_symmetric_matching_keeps_a_scans_mask_and_landmarks_in_the_joint_solve():
+    """A floor under one scan, masked out (weight 0), changes nothing: both registrations and the joint solve
+    ignore it; the joint solve's fit term of that end equals the floorless scan's, and a landmark pulls."""
+    basis, surface, codes, rot, scans = _two_sphere_scans()
+    verts, faces, weights = _with_floor(scans[0], rot)
+    m = registration.symmetric_match(basis, (verts, faces), scans[1], steps=5, face_weights=(weights, None))
+    for end, code in zip(m.path[[0, -1]], codes):
+        assert np.abs(end - code).max() < 0.03 * np.abs(codes).max()
+    reg = registration.register(basis, verts, faces, scan_face_weights=weights)
+    level, gram = basis.schedule[-1], basis.template_metric()
+    fit = basis.template + np.tensordot(reg.code, basis.fields, 1)
+    mesh, tri = torch.as_tensor(fit), torch.as_tensor(basis.faces)
+    masked = registration.symmetric._end_terms(basis, (verts, faces), reg, level, gram, weights, None, 1.0,
+                                               torch.float64, "cpu")
+    bare = registration.symmetric._end_terms(basis, scans[0], reg, level, gram, None, None, 1.0, torch.float64, "cpu")
+    assert float(masked[0](mesh, tri)) == pytest.approx(float(bare[0](mesh, tri)), rel=1e-9)
+    assert float(masked[1](mesh)) == 0.0  # no landmarks, no pull
+    # a landmark: zero where the fit's vertex is, area-weighted squared distance elsewhere
+    at = reg.transform.invert(fit[:1])[0]
+    off = at + reg.transform.invert(np.array([[0.0, 0.0, 0.1]]))[0] - reg.transform.invert(np.zeros((1, 3)))[0]
+    pull_at = registration.symmetric._end_terms(basis, scans[0], reg, level, gram, None, [(0, at)], 2.0,
+                                                torch.float64, "cpu")[1]
+    pull_off = registration.symmetric._end_terms(basis, scans[0], reg, level, gram, None, [(0, off)], 2.0,
+                                                 torch.float64, "cpu")[1]
+    area = registration.surface_moments(basis.template, basis.faces)[0]
+    assert float(pull_at(mesh)) == pytest.approx(0.0, abs=1e-18)
+    assert float(pull_off(mesh)) == pytest.approx(2.0 * area * 0.1 ** 2, rel=1e-9)
+    # the second scan's bad mask is refused before the first scan is registered
+    with pytest.raises(InputError, match="face weights must have shape"):
+        registration.symmetric_match(basis, scans[0], scans[1], face_weights=(None, np.ones(3)),
+                                     callback=lambda e: pytest.fail("a solve started"))
+
+
 def test_geodesics_default_preconditioner_is_the_metric_at_the_mean_code():
     basis, _ = synthetic.smooth_sphere_basis(subdivisions=2, n_fields=6, seed=0)
     t, f, h = basis.tensors()

@@ -1,6 +1,7 @@
 """bareesa.workflows: what the CLI and the add-on both run (metric and preconditioning reach the
 solvers, replaced random draws are reported, one path for the same inputs from either front end)."""
 
+import dataclasses
 import json
 import re
 
@@ -39,9 +40,11 @@ def test_symmetric_matching_of_two_scans_solves_with_the_given_metric_steps_and_
     basis, surface = sphere
     seen = {}
 
-    def fake(b, scan0, scan1, steps=10, schedule=None, weights=None, prealign=True, kernel="auto", callback=None,
-             cancel=None, dtype=None, device="cpu"):
-        seen.update(weights=weights, steps=steps, schedule=schedule, device=device, kernel=kernel)
+    def fake(b, scan0, scan1, steps=10, schedule=None, weights=None, prealign=True, kernel="auto",
+             face_weights=(None, None), landmarks=(None, None), landmark_weight=1.0, callback=None, cancel=None,
+             dtype=None, device="cpu"):
+        seen.update(weights=weights, steps=steps, schedule=schedule, device=device, kernel=kernel,
+                    face_weights=face_weights, landmarks=landmarks)
         path = geodesics.straight_path(A, B, steps)
         return registration.Matching(path=path, energy=1.0, distance=1.0, transforms=(Similarity(), Similarity()),
                                      varifold=(0.0, 0.0), seconds=0.0)
@@ -51,9 +54,15 @@ def test_symmetric_matching_of_two_scans_solves_with_the_given_metric_steps_and_
     options = workflows.Options(weights="body", schedule=schedule, steps=5, device="meta", kernel="linear")
     found = workflows.path_between(basis, raw_scan(surface, A, 4), raw_scan(surface, B, 6), 4,
                                    workflows.Options(weights="body", schedule=schedule, steps=5))
-    assert seen == {"weights": PRESETS["body"], "steps": 5, "schedule": schedule, "device": "cpu", "kernel": "auto"}
-    workflows.geodesic_between(basis, raw_scan(surface, A, 4), raw_scan(surface, B, 6), options)
+    assert seen == {"weights": PRESETS["body"], "steps": 5, "schedule": schedule, "device": "cpu", "kernel": "auto",
+                    "face_weights": (None, None), "landmarks": (None, None)}
+    masked, marked = raw_scan(surface, A, 4), raw_scan(surface, B, 6)
+    masked = dataclasses.replace(masked, face_weights=np.ones(len(masked.faces)))
+    marked = dataclasses.replace(marked, landmarks=[(0, (0.0, 0.0, 1.0))])
+    workflows.geodesic_between(basis, masked, marked, options)
     assert seen["device"] == "meta" and seen["kernel"] == "linear"  # the caller's device and kernel reach it
+    assert seen["face_weights"][0] is masked.face_weights and seen["face_weights"][1] is None  # and each scan's
+    assert seen["landmarks"] == (None, marked.landmarks)  # mask and landmarks
     assert basis.weights == PRESETS["face"]  # the caller's basis keeps its own metric
     assert found.frames.shape == (4, 4) and found.matching is not None
     for end, code in zip(found.ends, (A, B)):

@@ -223,9 +223,10 @@ def geodesic_between(basis, a, b, options=Options(), callback=None, cancel=None)
         m = registration.symmetric_match(basis, (a.verts, a.faces), (b.verts, b.faces), steps=options.steps,
                                          schedule=options.schedule,
                                          weights=None if options.weights is None else weights,  # basis' own two
-                                         prealign=options.prealign,
-                                         kernel=options.kernel, callback=callback, cancel=cancel, dtype=options.dtype,
-                                         device=options.device)
+                                         prealign=options.prealign, kernel=options.kernel,
+                                         face_weights=(a.face_weights, b.face_weights),
+                                         landmarks=(a.landmarks, b.landmarks), callback=callback, cancel=cancel,
+                                         dtype=options.dtype, device=options.device)
         ends = tuple(Code(e.code, registration=e) for e in matched_ends(basis, m, (a, b)))
         return LatentPath(ends=ends, path=m.path, distance=m.distance, matching=m)
     lo = _scan_share((a, b))

@@ -155,7 +155,8 @@ def level_kernels(kernel, n_levels, noisy=False):
     return names
 
 
-def _check_face_weights(weights, n_faces):
+def check_face_weights(weights, n_faces):
+    """Scan face weights (G,) >= 0, not all zero, or None -> float64 (G,) or None (InputError otherwise)."""
     if weights is None:
         return None
     w = np.asarray(weights, dtype=np.float64)
@@ -168,7 +169,7 @@ def _check_face_weights(weights, n_faces):
     return w
 
 
-def _check_landmarks(landmarks, n_verts):
+def check_landmarks(landmarks, n_verts):
     """[(template vertex, scan xyz[, weight]), ...] -> indices (L,), points (L, 3), weights (L,)."""
     if landmarks is None or len(landmarks) == 0:
         return None
@@ -264,9 +265,9 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
         raise InputError(f"dtype must be a torch floating point dtype, got {dtype!r}")
     validate_mesh(scan_verts, scan_faces, "scan")
     sv, sf = np.asarray(scan_verts, np.float64), np.asarray(scan_faces, np.int64)
-    face_w = _check_face_weights(scan_face_weights, sf.shape[0])
+    face_w = check_face_weights(scan_face_weights, sf.shape[0])
     check_plausible_scan(basis, sv, sf, face_w)
-    marks = _check_landmarks(landmarks, basis.template.shape[0])
+    marks = check_landmarks(landmarks, basis.template.shape[0])
     if not (math.isfinite(landmark_weight) and landmark_weight >= 0):
         raise InputError(f"landmark_weight must be finite and >= 0, got {landmark_weight}")
     levels = _check_schedule(basis.schedule if schedule is None else schedule)

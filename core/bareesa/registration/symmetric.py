@@ -15,7 +15,8 @@ from ..optimize import minimize_lbfgs
 from ..progress import Monitor
 from ..transforms import Similarity
 from ..varifold import VarifoldLoss, is_oriented
-from .multiscale import level_kernels, register
+from .multiscale import check_face_weights, check_landmarks, level_kernels, register
+from .prealign import surface_moments
 from .problem import LEVEL_FTOL, end_whitening, orient_like
 
 #: dtype of the joint solve's start, the geodesic between the two registrations' codes (with
@@ -53,7 +54,8 @@ class Matching:
 
 
 def symmetric_match(basis, scan0, scan1, steps=10, schedule=None, weights=None, prealign=True, kernel="auto",
-                    callback=None, cancel=None, dtype=torch.float64, device="cpu"):
+                    face_weights=(None, None), landmarks=(None, None), landmark_weight=1.0, callback=None,
+                    cancel=None, dtype=torch.float64, device="cpu"):
     """Codes of two raw scans and the geodesic between them in one optimisation (paper eq. sym. match).
 
     scan0, scan1: (verts (M, 3), faces (G, 3)). Each scan is first registered (warm start,
@@ -62,7 +64,8 @@ def symmetric_match(basis, scan0, scan1, steps=10, schedule=None, weights=None, 
     of the schedule, with the finest kernel each scan's registration used (``register``'s ``kernel``;
     an oriented one on the scan's faces turned like its registration). weights: the H2 weights of E
     and of the registrations (default the basis': ``weights`` for E, ``shape_metric`` for the
-    registrations); dtype, device: of the objective.
+    registrations); face_weights, landmarks: one per scan, as ``register`` takes them (an ignored face
+    stays ignored and a landmark keeps pulling in the joint solve too); dtype, device: of the objective.
     """
     start = time.perf_counter()
     if steps < 2:
@@ -72,37 +75,59 @@ def symmetric_match(basis, scan0, scan1, steps=10, schedule=None, weights=None, 
     given = weights  # the ends' registrations use the basis' shape metric unless weights are given
     weights = H2Weights.parse(basis.weights if weights is None else weights)
     level_kernels(kernel, len(levels))  # checked before any solve
-    options = dict(schedule=levels, prealign=prealign, metric=given, kernel=kernel, cancel=cancel, dtype=dtype,
-                   device=device)
-    r0 = register(basis, *scan0, callback=monitor.scaled(0.0, 0.4), **options)
-    r1 = register(basis, *scan1, callback=monitor.scaled(0.4, 0.8), **options)
+    face_weights, landmarks = tuple(face_weights), tuple(landmarks)
+    if len(face_weights) != 2 or len(landmarks) != 2:
+        raise InputError("face_weights and landmarks: one entry (or None) per scan, two in all")
+    for scan, w, marks in zip((scan0, scan1), face_weights, landmarks):  # both checked before any solve
+        check_face_weights(w, len(scan[1]))
+        check_landmarks(marks, basis.template.shape[0])
+    options = dict(schedule=levels, prealign=prealign, metric=given, kernel=kernel, landmark_weight=landmark_weight,
+                   cancel=cancel, dtype=dtype, device=device)
+    r0 = register(basis, *scan0, scan_face_weights=face_weights[0], landmarks=landmarks[0],
+                  callback=monitor.scaled(0.0, 0.4), **options)
+    r1 = register(basis, *scan1, scan_face_weights=face_weights[1], landmarks=landmarks[1],
+                  callback=monitor.scaled(0.4, 0.8), **options)
     path, energy, gammas = match_registered(basis, (scan0, scan1), (r0, r1), steps, levels[-1], weights, monitor,
-                                            dtype, device)
+                                            dtype, device, face_weights, landmarks, landmark_weight)
     monitor.report(1.0, "symmetric matching done", energy + levels[-1].weight * sum(gammas))
     return Matching(path=path, energy=energy, distance=float(np.sqrt(max(energy, 0.0))),
                     transforms=(r0.transform, r1.transform), varifold=gammas, seconds=time.perf_counter() - start)
 
 
-def _end_terms(basis, scan, reg, level, gram, dtype, device):
-    """One end of the joint solve: the varifold losses of its scan at ``level``'s sigma with the kernels its
-    registration's finest level used (an oriented one on the scan's faces turned like the fit), exact: no
-    cells, no truncation (on `human` scans 0.1 mm closer to the truth than the registration's cell sums);
-    and the whitening (P, P) of its code (``problem.end_whitening`` at the registered code)."""
+def _end_terms(basis, scan, reg, level, gram, face_weights, landmarks, landmark_weight, dtype, device):
+    """One end of the joint solve -> (gamma, pull, whitening). gamma(F(code) (N, 3), faces): the varifold
+    losses of its scan at ``level``'s sigma with the kernels its registration's finest level used (an
+    oriented one on the scan's faces turned like the fit), exact: no cells, no truncation (on `human` scans
+    0.1 mm closer to the truth than the registration's cell sums), the scan's face weights (G,) applied;
+    pull(F(code)): the landmark term as ``register`` adds it (0 without landmarks), the landmarks moved into
+    the template frame by the registration's similarity; the whitening (P, P) of its code
+    (``problem.end_whitening`` at the registered code)."""
     verts = reg.transform.apply(np.asarray(scan[0], dtype=np.float64))
     faces = np.asarray(scan[1])
+    face_w = check_face_weights(face_weights, len(faces))
     names = reg.levels[-1]["kernel"].split("+")
     if any(is_oriented(name) for name in names):
-        faces = orient_like(verts, faces, reg.transform.apply(reg.vertices), basis.faces)[0]
-    verts_t = torch.as_tensor(verts, dtype=dtype, device=device)
-    faces_t = torch.as_tensor(faces, dtype=torch.long, device=device)
-    losses = [VarifoldLoss(verts_t, faces_t, level.sigma * basis.scale, name) for name in names]
-    return losses, end_whitening(gram, basis.template, basis.faces, basis.fields, level.weight, reg.code)
+        faces = orient_like(verts, faces, reg.transform.apply(reg.vertices), basis.faces, face_w)[0]
+    as_t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
+    verts_t, faces_t = as_t(verts), torch.as_tensor(faces, dtype=torch.long, device=device)
+    losses = [VarifoldLoss(verts_t, faces_t, level.sigma * basis.scale, name,
+                           target_weights=None if face_w is None else as_t(face_w)) for name in names]
+    gamma = lambda mesh, faces: sum(loss(mesh, faces) for loss in losses)  # noqa: E731
+    marks = check_landmarks(landmarks, basis.template.shape[0])
+    pull = lambda mesh: 0.0  # noqa: E731
+    if marks is not None:
+        idx, points = torch.as_tensor(marks[0], device=device), as_t(reg.transform.apply(marks[1]))
+        lm_w = as_t(marks[2] / marks[2].sum() * landmark_weight * surface_moments(basis.template, basis.faces)[0])
+        pull = lambda mesh: (lm_w * ((mesh[idx] - points) ** 2).sum(1)).sum()  # noqa: E731
+    return gamma, pull, end_whitening(gram, basis.template, basis.faces, basis.fields, level.weight, reg.code)
 
 
-def match_registered(basis, scans, regs, steps, level, weights, monitor, dtype=torch.float64, device="cpu"):
+def match_registered(basis, scans, regs, steps, level, weights, monitor, dtype=torch.float64, device="cpu",
+                     face_weights=(None, None), landmarks=(None, None), landmark_weight=1.0):
     """The joint solve of symmetric matching from two registrations: minimise level.weight * [Gamma(F(alpha_0),
     q0) + Gamma(F(alpha_1), q1)] + E(alpha) over the path (steps, P), both ends free, each scan fixed in the
-    template frame by its registration's similarity. -> (path (steps, P), energy, (Gamma_0, Gamma_1)).
+    template frame by its registration's similarity (Gamma with each scan's face weights and landmark term,
+    as its registration had them). -> (path (steps, P), energy, (Gamma_0, Gamma_1)).
 
     Preconditioned like a registration level (``problem.PathVariables``): each end code whitened by its
     level Hessian estimate, the interior's deviation from the straight line by the time whitening and the
@@ -112,14 +137,15 @@ def match_registered(basis, scans, regs, steps, level, weights, monitor, dtype=t
     template, faces, fields = basis.tensors(dtype=dtype, device=device)
     p = fields.shape[0]
     gram = basis.template_metric(weights)
-    ends = [_end_terms(basis, scan, reg, level, gram, dtype, device) for scan, reg in zip(scans, regs)]
+    ends = [_end_terms(basis, scan, reg, level, gram, w, marks, landmark_weight, dtype, device)
+            for scan, reg, w, marks in zip(scans, regs, face_weights, landmarks)]
     codes = [reg.code for reg in regs]
     start_tensors = basis.tensors(dtype=START_DTYPE, device=device)
     middle = midpoint_metric(*start_tensors, *codes, weights)
     b_path = whitening(middle)
     r_inv = interior_whitening(steps - 2)
     as_t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
-    b0, b1, b_t, r_t = as_t(ends[0][1]), as_t(ends[1][1]), as_t(b_path), as_t(r_inv)
+    b0, b1, b_t, r_t = as_t(ends[0][2]), as_t(ends[1][2]), as_t(b_path), as_t(r_inv)
     ramp = torch.linspace(0, 1, steps, dtype=dtype, device=device)[1:-1, None]
     terms = {}
 
@@ -132,16 +158,18 @@ def match_registered(basis, scans, regs, steps, level, weights, monitor, dtype=t
     def objective(x):
         meshes = decode(template, fields, path_of(x))
         energy = path_energy(meshes, faces, weights)
-        gammas = [sum(loss(mesh, faces) for loss in losses) for (losses, _), mesh in zip(ends, meshes[[0, -1]])]
+        ends_mesh = meshes[[0, -1]]
+        gammas = [gamma(mesh, faces) for (gamma, _, _), mesh in zip(ends, ends_mesh)]
+        pulls = [pull(mesh) for (_, pull, _), mesh in zip(ends, ends_mesh)]
         terms.update(energy=energy, gammas=gammas)
-        return level.weight * (gammas[0] + gammas[1]) + energy
+        return level.weight * (gammas[0] + gammas[1] + pulls[0] + pulls[1]) + energy
 
     # start: the geodesic between the two registrations' codes
     init = geodesic(*start_tensors, *codes, weights, steps=steps, cancel=monitor.cancel, max_iter=100,
                     metric=middle, plateau=FRAMES_PLATEAU)
     deviation = (init.path - straight_path(*codes, steps))[1:-1]
     inner = np.linalg.solve(r_inv, deviation) @ np.linalg.inv(b_path) if steps > 2 else deviation
-    x0 = np.concatenate([np.linalg.solve(ends[0][1].T, codes[0]), np.linalg.solve(ends[1][1].T, codes[1]),
+    x0 = np.concatenate([np.linalg.solve(ends[0][2].T, codes[0]), np.linalg.solve(ends[1][2].T, codes[1]),
                          inner.ravel()])
     x, _, _ = minimize_lbfgs(objective, x0, monitor, max_iter=level.max_iter, progress=(0.8, 1.0),
                              message="symmetric matching", ftol=LEVEL_FTOL, plateau=MATCH_PLATEAU)
