@@ -240,7 +240,7 @@ def test_symmetric_matchings_joint_solve_moves_the_ends_and_the_path_with_them()
     assert max(gammas) < 2 * max(r.varifold for r in regs)
 
 
-def _with_floor(scan, rot, seed=0):
+def _with_floor(scan, rot):
     """A scan of _two_sphere_scans with a square floor under it (the same frame): -> (verts, faces, weights (G,)),
     the weights 1 on the scan's faces and 0 on the floor's."""
     grid = np.stack(np.meshgrid(np.linspace(-1.5, 1.5, 9), np.linspace(-1.5, 1.5, 9), indexing="ij"), -1).reshape(-1, 2)
