@@ -111,7 +111,8 @@ def test_a_poor_fit_is_registered_again_from_other_alignments(basis, monkeypatch
     """Started only from the right alignment turned half a turn, the fit is poor; the retry from the
     half turns of that fit finds the right one (a human scan registered facing backwards, in miniature).
     When the retry's short screening picks a poor fit again, the same alignments are screened deeper,
-    ranked by the fit residual, and the best fit of all is kept."""
+    ranked by the fit residual, and the best fit of all is kept; with pose candidates, each alignment of the
+    deeper screening gets the pose stage after its first level, as a registration does."""
     from bareesa.latent import Level
 
     schedule = (Level(0.25, 1e3, 1, 10), Level(0.1, 1e5, 1, 10))
@@ -131,14 +132,24 @@ def test_a_poor_fit_is_registered_again_from_other_alignments(basis, monkeypatch
         residuals.append(out[1])
         return out
 
+    staged = []  # pose stages: True while inside the deeper screening
+    real_poses = multiscale.try_poses
+
     def deep_spy(*args):
         residuals.clear()
+        staged.append("deep")
         out = real_deep(*args)
+        staged.append("done")
         screens.append((list(residuals), out, len(args[6])))  # args[6]: the candidates
         return out
 
+    def poses_spy(*args, **kwargs):
+        staged.append("pose")
+        return real_poses(*args, **kwargs)
+
     monkeypatch.setattr(multiscale, "_residual", residual_spy)
     monkeypatch.setattr(multiscale, "_deep_screen", deep_spy)
+    monkeypatch.setattr(multiscale, "try_poses", poses_spy)
     try:
         for flip in flips:
             wrong_start = [multiscale.Alignment(0.0, flip.compose(right.transform))]
@@ -161,9 +172,12 @@ def test_a_poor_fit_is_registered_again_from_other_alignments(basis, monkeypatch
                 return out
 
             monkeypatch.setattr(multiscale, "_fit", short_retry_fails)
-            deeper = registration.register(basis, scan, faces, schedule=schedule)
+            staged.clear()
+            deeper = registration.register(basis, scan, faces, schedule=schedule, pose_candidates=code[None] + 0.1)
             (screened, (_, _, _, order, best), n_candidates), = screens
             assert len(screened) == n_candidates == deeper.retried_alignments
+            inside = staged[staged.index("deep") + 1:staged.index("done")]
+            assert inside == ["pose"] * n_candidates  # one pose stage per alignment screened deeper
             assert list(order) == list(np.argsort(screened)) and best == int(np.argmin(screened))
             assert deeper.poor_fit is False and deeper.residual < 1.5 * right.residual
             break

@@ -45,7 +45,10 @@ SCREEN_TIE = 1.5            # ... when the second best scored within this factor
 #: backwards first on 2 of 40 held-out `human` scans, in the first try and in the retry; after 30
 #: second-level iterations the right alignment has the smallest residual on both. Not as the only
 #: retry: on a third scan the right alignment is still far off after 30 iterations, and the short
-#: screening finds it (bench/README).
+#: screening finds it (bench/README). Each alignment gets the pose stage between the two, as a
+#: registration does: without it a body far from every pose start (a held-out scan, code norm 75) still
+#: scored 0.04-0.1 after 30 iterations from every alignment and the backwards one won; with it the right
+#: ones scored 0.0047 against 0.046 and the retry ended right (bench/README, 2026-12-05).
 RETRY_SECOND_ITER = 30
 PREALIGN_FRACTION = 0.1     # share of the progress bar given to the pre-alignment
 #: "auto" registers the finest level with the oriented linear kernel when the scan's normal spread
@@ -415,8 +418,9 @@ def _fit(problem, basis, levels, kernels, poses, path, candidates, used, monitor
 
 
 def _deep_screen(problem, basis, levels, kernels, poses, path, candidates, used, span):
-    """The whole first level and RETRY_SECOND_ITER second-level iterations from each candidate, ranked
-    by the fit residual: -> (path, transform, first-level report, order, best) of the best."""
+    """The whole first level, the pose stage (with pose candidates) and RETRY_SECOND_ITER second-level
+    iterations from each candidate, ranked by the fit residual: -> (path, transform, first-level report,
+    order, best) of the best."""
     short = replace(levels[1], max_iter=RETRY_SECOND_ITER)
     step = (span[1] - span[0]) / len(candidates)
     tries, residuals = [], []
@@ -425,6 +429,9 @@ def _deep_screen(problem, basis, levels, kernels, poses, path, candidates, used,
         label = f" (alignment {j + 1}/{len(candidates)}, retry)"
         p, t, first = problem.solve_level(levels[0], _start(path, poses, candidate), candidate.transform, (a, m),
                                           _level_name(0, len(levels)) + label, kernels[0])
+        if poses is not None:  # as the full registration goes on: a body far from every start needs its pose
+            p, t, _ = try_poses(problem, basis, levels[1], levels[min(2, len(levels) - 1)], p, t, poses, (m, m),
+                                _level_name(1, len(levels)) + label, kernels[1])
         p, t, _ = problem.solve_level(short, p, t, (m, b), _level_name(1, len(levels)) + label,
                                       kernels[1], orient=True)
         tries.append((p, t, first))
