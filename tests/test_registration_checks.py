@@ -132,7 +132,7 @@ def test_a_poor_fit_is_registered_again_from_other_alignments(basis, monkeypatch
         residuals.append(out[1])
         return out
 
-    staged = []  # pose stages: True while inside the deeper screening
+    staged = []  # "deep" ... "done" around a deeper screening, "pose" for each pose stage
     real_poses = multiscale.try_poses
 
     def deep_spy(*args):

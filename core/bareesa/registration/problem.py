@@ -171,6 +171,15 @@ def _normal_gram(verts, faces, fields):
     return (hn * area) @ hn.T
 
 
+def landmark_pull(marks, landmark_weight, area, dtype, device):
+    """The landmark term of ``register``: marks = (template vertex indices (L,), scan points (L, 3), weights
+    (L,)) as ``multiscale.check_landmarks`` returns them, area the template's -> pull(final (N, 3), points
+    (L, 3) tensors) = sum_i w_i |final_i - p_i|^2 with w = marks' weights / their sum * landmark_weight * area."""
+    idx = torch.as_tensor(marks[0], device=device)
+    w = torch.as_tensor(marks[2] / marks[2].sum() * landmark_weight * area, dtype=dtype, device=device)
+    return lambda final, points: (w * ((final[idx] - points) ** 2).sum(1)).sum()
+
+
 def end_whitening(gram, template, faces, fields, weight, code):
     """Whitening (P, P) of an end code fitted with weight * Gamma, about code (P,): of G-bar + 4 pi weight N.
 
@@ -202,9 +211,7 @@ class RegistrationProblem:
         self.scan_weights = None if face_w is None else torch.as_tensor(face_w, dtype=dtype, device=device)
         self.marks = marks
         if marks is not None:
-            self.lm_idx = torch.as_tensor(marks[0], device=device)
-            self.lm_w = torch.as_tensor(marks[2] / marks[2].sum() * landmark_weight * area, dtype=dtype,
-                                        device=device)
+            self.pull = landmark_pull(marks, landmark_weight, area, dtype, device)
         self.metric, self.backend = metric, backend
         self.n_extra = 7 if refine_transform else 0
         self.dtype, self.device, self.monitor = dtype, device, monitor
@@ -282,7 +289,7 @@ class RegistrationProblem:
 
     def landmark_term(self, final, points):
         """sum_i w_i |F_i - p_i|^2 of the landmark vertices of ``final`` (N, 3) against ``points`` (L, 3)."""
-        return (self.lm_w * ((final[self.lm_idx] - points) ** 2).sum(1)).sum()
+        return self.pull(final, points)
 
     def oriented_scan_faces(self, code, transform):
         """The scan's faces turned like the nearest faces of F(code) (``orient_like``, template frame):

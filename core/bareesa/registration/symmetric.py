@@ -17,7 +17,7 @@ from ..transforms import Similarity
 from ..varifold import VarifoldLoss, is_oriented
 from .multiscale import check_face_weights, check_landmarks, level_kernels, register
 from .prealign import surface_moments
-from .problem import LEVEL_FTOL, end_whitening, orient_like
+from .problem import LEVEL_FTOL, end_whitening, landmark_pull, orient_like
 
 #: dtype of the joint solve's start, the geodesic between the two registrations' codes (with
 #: ``geodesics.FRAMES_PLATEAU``: within 0.2 mm of float64's on human bodies at half the time)
@@ -116,9 +116,9 @@ def _end_terms(basis, scan, reg, level, gram, face_weights, landmarks, landmark_
     marks = check_landmarks(landmarks, basis.template.shape[0])
     pull = lambda mesh: 0.0  # noqa: E731
     if marks is not None:
-        idx, points = torch.as_tensor(marks[0], device=device), as_t(reg.transform.apply(marks[1]))
-        lm_w = as_t(marks[2] / marks[2].sum() * landmark_weight * surface_moments(basis.template, basis.faces)[0])
-        pull = lambda mesh: (lm_w * ((mesh[idx] - points) ** 2).sum(1)).sum()  # noqa: E731
+        points = as_t(reg.transform.apply(marks[1]))
+        term = landmark_pull(marks, landmark_weight, surface_moments(basis.template, basis.faces)[0], dtype, device)
+        pull = lambda mesh: term(mesh, points)  # noqa: E731
     return gamma, pull, end_whitening(gram, basis.template, basis.faces, basis.fields, level.weight, reg.code)
 
 
