@@ -76,8 +76,8 @@ def add_vertex_groups(obj, names, weights):
 
 
 def evaluated_mesh_with_mask(obj, depsgraph, group):
-    """``evaluated_mesh`` plus per-face weights from the vertex group ``group`` (1 = ignore):
-    -> verts (N, 3), tris (F, 3), face weights (F,) = 1 - mean vertex weight, or None without the group."""
+    """``evaluated_mesh`` plus the per-vertex weights of the vertex group ``group`` (1 = ignore):
+    -> verts (N, 3), tris (F, 3), ignore weights (N,) (0 where a vertex is not in it), or None without the group."""
     require_mesh(obj)
     evaluated = obj.evaluated_get(depsgraph)
     mesh = evaluated.to_mesh()
@@ -91,7 +91,7 @@ def evaluated_mesh_with_mask(obj, depsgraph, group):
             for g in v.groups:
                 if g.group == vg.index:
                     ignore[v.index] = g.weight
-        return verts, tris, np.clip(1.0 - ignore[tris].mean(1), 0.0, 1.0)
+        return verts, tris, ignore
     finally:
         evaluated.to_mesh_clear()
 

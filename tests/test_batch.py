@@ -347,3 +347,59 @@ print("code", np.round(res[0].code, 6).tolist())
                          env={**os.environ, "PYTHONPATH": ""})
     assert run.returncode == 0, run.stderr[-3000:]
     assert "code" in run.stdout
+
+
+def test_a_scans_mask_and_landmark_files_register_with_it_and_a_change_to_them_is_a_new_input(tiny, tmp_path):
+    from bareesa.errors import InputError
+    from bareesa.masks import face_weights_from_ignore
+    from bareesa.transforms import Similarity
+
+    basis = load_basis(tiny[0])
+    u, faces = synthetic.resampled_sphere(2, seed=3)
+    code = np.array([0.4, -0.3, 0.2, 0.1])
+    sphere = tiny[1](u, code)
+    mark = tiny[1](synthetic.icosphere(1)[0][:1], code)  # where template vertex 0 is on the scan
+    g = np.linspace(-2.0, 2.0, 5)
+    xx, yy = np.meshgrid(g, g, indexing="ij")
+    plate = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, sphere[:, 2].min() - 0.05)], 1)
+    a = (np.arange(4)[:, None] * 5 + np.arange(4)[None, :]).ravel()
+    tris = np.concatenate([np.stack([a, a + 5, a + 6], 1), np.stack([a, a + 6, a + 1], 1)]) + len(sphere)
+    verts, faces = np.concatenate([sphere, plate]), np.concatenate([faces, tris])
+    scan = save_mesh(tmp_path / "s.ply", verts, faces) or tmp_path / "s.ply"
+    plain_hash = batch.input_hash(scan)
+    assert plain_hash == batch.file_hash(scan)  # no sidecar: the records of earlier batches stay valid
+    ignore = (np.arange(len(verts)) >= len(sphere)).astype(float)
+    np.save(tmp_path / "s.ignore.npy", ignore)
+    (tmp_path / "s.landmarks.csv").write_text(f"0, {', '.join(f'{x!r}' for x in mark[0])}\n")
+    masked_hash = batch.input_hash(scan)
+    assert masked_hash != plain_hash
+    threads = torch.get_num_threads()
+    try:
+        rec = batch.register_one(basis, scan)
+        torch.set_num_threads(1)
+        ref = registration.register(basis, verts, faces, scan_face_weights=face_weights_from_ignore(ignore, faces),
+                                    landmarks=[(0, mark[0], 1.0)])
+        # a warm start maps the scan, and so its landmarks, by the previous frame's alignment: the same scan
+        # moved, with its files, starts from the first one's code and the motion back
+        before = Similarity(random_rotation(4), 1.1, np.array([0.2, -0.1, 0.3]))
+        moved = save_mesh(tmp_path / "m.ply", before.invert(verts), faces) or tmp_path / "m.ply"
+        np.save(tmp_path / "m.ignore.npy", ignore)
+        (tmp_path / "m.landmarks.csv").write_text(f"0, {', '.join(f'{x!r}' for x in before.invert(mark)[0])}\n")
+        warm = batch.register_one(basis, moved, {"status": "ok", "name": "prev", "code": rec["code"],
+                                                 "transform": before.to_dict()})
+    finally:
+        torch.set_num_threads(threads)
+    assert rec["status"] == "ok" and rec["ignore"] == "s.ignore.npy" and rec["landmarks"] == "s.landmarks.csv"
+    assert rec["input_hash"] == masked_hash
+    np.testing.assert_allclose(rec["code"], ref.code, rtol=1e-7, atol=1e-9)
+    assert warm["status"] == "ok" and warm["warm_start"] == "prev"
+    np.testing.assert_allclose(warm["code"], rec["code"], atol=0.05)
+    np.save(tmp_path / "s.ignore.npy", 0.5 * ignore)
+    assert batch.input_hash(scan) not in (plain_hash, masked_hash)  # an edited mask registers the scan again
+    (tmp_path / "s.ignore.txt").write_text("0\n")
+    with pytest.raises(InputError, match="two ignore files"):
+        batch.input_hash(scan)
+    (tmp_path / "s.ignore.txt").unlink()
+    np.save(tmp_path / "s.ignore.npy", np.ones(3))
+    bad = batch.register_one(basis, scan)
+    assert bad["status"] == "failed" and f"expected {len(verts)} numbers" in bad["error"]

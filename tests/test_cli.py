@@ -403,3 +403,74 @@ def test_the_device_of_the_command_line_reaches_the_workflows(capsys, built, mon
     monkeypatch.setattr(cli, "path_between", path_between)
     rc, _, err = run(capsys, "interpolate", *seqs["bend"][:2], "--basis", out, "-o", tmp / "x", "--device", "cuda:3")
     assert rc == 2 and "stop here" in err and seen == ["cuda:3", "cuda:3"]
+
+
+def _scan_on_a_plate(surface, alpha, seed=5):
+    """F(alpha) sampled on a resampled sphere, standing on a square plate 0.05 below it (one mesh):
+    -> (verts, faces, number of the sphere's vertices, number of its faces)."""
+    u, faces = synthetic.resampled_sphere(2, seed=seed)
+    verts = surface(u, alpha)
+    g = np.linspace(-2.5, 2.5, 6)
+    xx, yy = np.meshgrid(g, g, indexing="ij")
+    plate = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, verts[:, 2].min() - 0.05)], 1)
+    a = (np.arange(5)[:, None] * 6 + np.arange(5)[None, :]).ravel()
+    tris = np.concatenate([np.stack([a, a + 6, a + 7], 1), np.stack([a, a + 7, a + 1], 1)]) + len(verts)
+    return np.concatenate([verts, plate]), np.concatenate([faces, tris]), len(verts), len(faces)
+
+
+def test_register_ignores_what_its_mask_file_says_and_bad_masks_are_one_line_errors(capsys, tmp_path, monkeypatch):
+    from bareesa.basis_io import save_basis
+
+    basis, surface = synthetic.smooth_sphere_basis(subdivisions=2, n_fields=6, seed=0)
+    save_basis(tmp_path / "s.npz", basis)
+    alpha = 0.5 * np.random.default_rng(4).normal(size=6)
+    verts, faces, n_sphere, n_faces = _scan_on_a_plate(surface, alpha)
+    save_mesh(tmp_path / "scan.ply", verts, faces)
+    ignore = (np.arange(len(verts)) >= n_sphere).astype(float)
+    (tmp_path / "mask.txt").write_text("# 1 = the plate\n" + "\n".join(f"{w:g}" for w in ignore))
+    seen = []
+    real = cli.code_of
+    monkeypatch.setattr(cli, "code_of", lambda basis, item, *a, **k: (seen.append(item), real(basis, item, *a, **k))[1])
+    rc, out, err = run(capsys, "register", tmp_path / "scan.ply", "--basis", tmp_path / "s.npz",
+                       "-o", tmp_path / "reg.ply", "--ignore", tmp_path / "mask.txt", "--json")
+    assert rc == 0, err
+    weights = seen[0].face_weights
+    assert np.all(weights[:n_faces] == 1.0) and np.all(weights[n_faces:] == 0.0)
+    assert np.abs(np.array(json.loads(out)["code"]) - alpha).max() < 0.05
+    np.save(tmp_path / "short.npy", ignore[:-1])
+    np.save(tmp_path / "all.npy", np.ones(len(verts)))
+    (tmp_path / "range.txt").write_text(" ".join(["2"] * len(verts)))
+    for mask, message in (("short.npy", f"expected {len(verts)} numbers"), ("all.npy", "ignores every face"),
+                          ("range.txt", "between 0 (keep) and 1 (ignore)"), ("none.txt", "does not exist")):
+        rc, out, err = run(capsys, "register", tmp_path / "scan.ply", "--basis", tmp_path / "s.npz",
+                           "-o", tmp_path / "bad.ply", "--ignore", tmp_path / mask)
+        assert rc == 2 and message in err and mask in err, (mask, err)
+        assert len(err.strip().splitlines()) == 1 and not (tmp_path / "bad.ply").exists()
+
+
+def test_pair_verbs_give_each_raw_scan_its_own_mask_and_landmarks(capsys, tmp_path, monkeypatch):
+    from types import SimpleNamespace
+
+    from bareesa.basis_io import save_basis
+
+    basis, surface = synthetic.smooth_sphere_basis(subdivisions=2, n_fields=6, seed=0)
+    save_basis(tmp_path / "s.npz", basis)
+    verts, faces, n_sphere, n_faces = _scan_on_a_plate(surface, np.zeros(6))
+    save_mesh(tmp_path / "a.ply", verts, faces)
+    save_mesh(tmp_path / "b.ply", verts[:n_sphere] + 0.1, faces[:n_faces])
+    save_mesh(tmp_path / "t.ply", basis.template, basis.faces)
+    np.save(tmp_path / "mask.npy", (np.arange(len(verts)) >= n_sphere).astype(float))
+    (tmp_path / "lm.csv").write_text(f"3, {', '.join(f'{x:g}' for x in verts[7])}\n")
+    seen = []
+    monkeypatch.setattr(cli, "geodesic_between", lambda basis, a, b, *args, **kw: (seen.append((a, b)),
+                                                                                    SimpleNamespace(distance=1.0))[1])
+    rc, out, err = run(capsys, "distance", tmp_path / "a.ply", tmp_path / "b.ply", "--basis", tmp_path / "s.npz",
+                       "--ignore-a", tmp_path / "mask.npy", "--landmarks-b", tmp_path / "lm.csv", "--json")
+    assert rc == 0, err
+    a, b = seen[0]
+    assert np.all(a.face_weights[:n_faces] == 1.0) and np.all(a.face_weights[n_faces:] == 0.0) and a.landmarks is None
+    assert b.face_weights is None and b.landmarks[0][0] == 3 and np.allclose(b.landmarks[0][1], verts[7])
+    # a mesh in the template's topology is projected, not registered: a mask for it is refused
+    rc, _, err = run(capsys, "interpolate", tmp_path / "t.ply", tmp_path / "b.ply", "--basis", tmp_path / "s.npz",
+                     "--ignore-a", tmp_path / "mask.npy", "-o", tmp_path / "frames")
+    assert rc == 2 and "--ignore-a only apply to raw scans" in err and not (tmp_path / "frames").exists()

@@ -148,8 +148,9 @@ def scan_landmarks(scan):
 def scan_input(context, obj, basis):
     """A scan as the solver takes it: its evaluated mesh, the panel's ignore mask (vertex group) as face
     weights and its visible landmark Empties: -> workflows.Scan."""
-    verts, tris, weights = cv.evaluated_mesh_with_mask(obj, context.evaluated_depsgraph_get(),
-                                                       settings(context).mask_group)
+    verts, tris, ignore = cv.evaluated_mesh_with_mask(obj, context.evaluated_depsgraph_get(),
+                                                      settings(context).mask_group)
+    weights = None if ignore is None else solver.module("masks").face_weights_from_ignore(ignore, tris)
     if weights is not None and not (weights > 0).any():
         raise cv.ConversionError(f"the ignore group '{settings(context).mask_group}' of '{obj.name}' covers the "
                                  "whole scan: nothing is left to register")

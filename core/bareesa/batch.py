@@ -6,8 +6,10 @@ the workers once; each worker reads its scan by path (a multi-machine cluster ne
 the same path on every machine; outputs are written by the client only). As each scan finishes the
 client writes, atomically, ``NAME.ply`` (the registered template in the scan's frame) and
 ``NAME.json`` (code, alignment, varifold / Chamfer / fit residuals, seconds, worker, input and basis
-hashes), and at the end the summary table ``summary.csv`` / ``summary.json``. A rerun skips the
-scans whose record matches the input's and the basis' sha256; a scan that fails (a ``BareEsaError``)
+hashes), and at the end the summary table ``summary.csv`` / ``summary.json``. A scan's ignore mask and
+landmarks are files next to it (``SIDECARS``: ``SCAN.ignore.npy`` or ``.txt``, ``SCAN.landmarks.json``
+or ``.csv``, the formats of ``bareesa.masks`` and ``bareesa.landmarks``). A rerun skips the scans whose
+record matches the input's (mesh and sidecar files) and the basis' sha256; a scan that fails (a ``BareEsaError``)
 is recorded with its one-line error and the others go on; Ctrl-C cancels what is left and keeps
 what finished.
 
@@ -43,6 +45,8 @@ from .basis_io import resolve_basis_path
 from . import errors
 from .errors import BareEsaError, InputError, SolveCancelled
 from .evaluation import chamfer
+from .landmarks import read_scan_landmarks
+from .masks import read_face_weights
 from .mesh import load_mesh, save_mesh, validate_mesh
 from .progress import Monitor
 from .transforms import Similarity
@@ -59,6 +63,8 @@ WARM_SKIP_LEVELS = 1
 #: Columns of summary.csv, in order.
 SUMMARY_COLUMNS = ("index", "name", "scan", "status", "varifold", "chamfer", "residual", "poor_fit", "iterations",
                    "seconds", "worker", "warm_start", "mesh", "seam_jump", "seam_flagged", "error")
+#: Files next to a scan (its stem + one of these) that a batch registers it with: its ignore mask and landmarks.
+SIDECARS = {"ignore": (".ignore.npy", ".ignore.txt"), "landmarks": (".landmarks.json", ".landmarks.csv")}
 MISSING_DASK = "install the batch extra: pip install 'bareesa[batch]' (Dask's distributed scheduler)"
 
 
@@ -78,6 +84,41 @@ def file_hash(path):
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def scan_sidecars(scan):
+    """The ignore mask and landmark files next to a scan file (``SIDECARS``): -> {"ignore": Path or None,
+    "landmarks": Path or None}. InputError when a scan has two files of one kind."""
+    scan = Path(scan)
+    out = {}
+    for kind, suffixes in SIDECARS.items():
+        found = [scan.with_name(scan.stem + suffix) for suffix in suffixes]
+        found = [p for p in found if p.is_file()]
+        if len(found) > 1:
+            raise InputError(f"scan {scan.name} has two {kind} files ({found[0].name}, {found[1].name}): keep one")
+        out[kind] = found[0] if found else None
+    return out
+
+
+def input_hash(scan):
+    """sha256 hex digest of a scan's input: its file's, combined with its sidecar files' when it has any (a
+    changed mask or landmark file registers the scan again)."""
+    digest = file_hash(scan)
+    extra = [p for p in scan_sidecars(scan).values() if p is not None]
+    if not extra:
+        return digest
+    h = hashlib.sha256(digest.encode())
+    for path in extra:
+        h.update(path.name.encode() + b"\0" + file_hash(path).encode())
+    return h.hexdigest()
+
+
+def _moved_landmarks(marks, transform):
+    """Scan landmarks [(vertex, (x, y, z), weight)] mapped by a Similarity (or None)."""
+    if marks is None:
+        return None
+    points = transform.apply(np.array([m[1] for m in marks], dtype=np.float64))
+    return [(m[0], p, *m[2:]) for m, p in zip(marks, points)]
 
 
 def write_atomic(path, text):
@@ -133,10 +174,15 @@ def register_one(basis, scan, previous=None, threads=1, options=None):
     start = time.perf_counter()
     out = {"worker": _worker_address(), "scan": str(scan)}
     try:
-        out["input_hash"] = file_hash(scan)
+        out["input_hash"] = input_hash(scan)
         verts, faces = load_mesh(scan)
         validate_mesh(verts, faces, name=Path(scan).name)
         kwargs = dict(options or {})
+        side = scan_sidecars(scan)
+        out.update({kind: None if path is None else path.name for kind, path in side.items()})
+        if side["ignore"] is not None:
+            kwargs["scan_face_weights"] = read_face_weights(side["ignore"], faces, len(verts))
+        marks = None if side["landmarks"] is None else read_scan_landmarks(side["landmarks"], basis)
         if previous is not None and previous.get("status") == "ok":
             # warm start: map the scan by the previous alignment, start from the previous code
             # and skip the coarsest levels (they find a far pose the previous frame gives)
@@ -144,12 +190,13 @@ def register_one(basis, scan, previous=None, threads=1, options=None):
             schedule = tuple(basis.schedule if kwargs.get("schedule") is None else kwargs["schedule"])
             kwargs["schedule"] = schedule[min(WARM_SKIP_LEVELS, len(schedule) - 1):]
             res = registration.register(basis, before.apply(verts), faces, prealign=False, refine_transform=True,
-                                        init_code=np.asarray(previous["code"]), pose_candidates=None, **kwargs)
+                                        init_code=np.asarray(previous["code"]), pose_candidates=None,
+                                        landmarks=_moved_landmarks(marks, before), **kwargs)
             transform = res.transform.compose(before)
             vertices = before.invert(res.vertices)
             out["warm_start"] = previous["name"]
         else:
-            res = registration.register(basis, verts, faces, **kwargs)
+            res = registration.register(basis, verts, faces, landmarks=marks, **kwargs)
             transform, vertices = res.transform, res.vertices
             out["warm_start"] = None
     except BareEsaError as err:
@@ -324,7 +371,7 @@ def register_batch(basis, scans, output, *, workers=2, threads_per_worker=1, sch
     names = output_names(scans)
     meshes = [output / f"{n}.ply" for n in names]
     records = [output / f"{n}.json" for n in names]
-    input_hashes = [file_hash(s) for s in scans]
+    input_hashes = [input_hash(s) for s in scans]
     monitor = Monitor("register-batch", callback, cancel)
     meta = {"version": RECORD_VERSION, "basis": str(basis_path), "basis_hash": basis_hash, "sequence": bool(sequence),
             "names": names}

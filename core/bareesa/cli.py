@@ -23,12 +23,13 @@ from .evaluation import mesh_metrics, vertex_error
 from .geodesics import decode_path
 from .h2_metric import H2Weights, path_energy
 from .landmarks import read_scan_landmarks, read_template_landmarks
+from .masks import read_face_weights
 from .mesh import load_mesh, save_mesh, validate_mesh
 from .progress import tqdm_callback
 from .scan_simulator import add_simulate_scan_arguments, apply_similarity, simulate_scan, simulate_scan_cli
 from .statistics import fit_training_distribution, pose_prototypes, sample_velocities
-from .workflows import (KnownCode, Options, Scan, check_device, code_of, extrapolate, geodesic_between, mesh_input,
-                        path_between, random_bodies, stored_distribution, transfer)
+from .workflows import (KnownCode, Options, Scan, TemplateMesh, check_device, code_of, extrapolate, geodesic_between,
+                        mesh_input, path_between, random_bodies, stored_distribution, transfer)
 
 
 def _options(args, **kwargs):
@@ -161,19 +162,32 @@ def cmd_build_basis(args):
     _print(rows, False, f"wrote {args.output} ({basis.n_fields} fields)")
 
 
-def _load_input(basis, path):
-    """A mesh file as a workflow input (validated): a TemplateMesh in the basis' template topology, else a Scan."""
+def _load_input(basis, path, landmarks=None, ignore=None, options=("--landmarks", "--ignore")):
+    """A mesh file as a workflow input (validated): a TemplateMesh in the basis' template topology, else a Scan
+    with the landmarks and ignore mask of the given files (``landmarks``, ``masks``; options: their flags, for
+    the message when the mesh is not a raw scan)."""
     v, f = load_mesh(path)
     validate_mesh(v, f, name=str(path))
-    return mesh_input(basis, v, f)
+    found = mesh_input(basis, v, f)
+    given = [flag for flag, file in zip(options, (landmarks, ignore)) if file is not None]
+    if not given:
+        return found
+    if isinstance(found, TemplateMesh):
+        raise InputError(f"{path} is in the basis' template topology (its code is a projection, not a registration): "
+                         f"{' and '.join(given)} only apply to raw scans")
+    return Scan(v, f, face_weights=None if ignore is None else read_face_weights(ignore, f, len(v)),
+                landmarks=None if landmarks is None else read_scan_landmarks(landmarks, basis))
 
 
 def _basis_and_pair(args, min_steps=None):
-    """The verbs on two meshes A, B: check --steps, load the basis and both inputs -> (basis, a, b)."""
+    """The verbs on two meshes A, B: check --steps, load the basis and both inputs (raw scans with their
+    --landmarks-a/-b, --ignore-a/-b) -> (basis, a, b)."""
     if min_steps is not None and args.steps < min_steps:
         raise InputError(f"--steps must be at least {min_steps}, got {args.steps}")
     basis = load_basis(args.basis)
-    return basis, _load_input(basis, args.a), _load_input(basis, args.b)
+    return basis, *(_load_input(basis, getattr(args, end), getattr(args, f"landmarks_{end}"),
+                                getattr(args, f"ignore_{end}"), (f"--landmarks-{end}", f"--ignore-{end}"))
+                    for end in ("a", "b"))
 
 
 def cmd_distance(args):
@@ -274,9 +288,11 @@ def cmd_register(args):
     verts, faces = load_mesh(args.scan)
     validate_mesh(verts, faces, name=str(args.scan))
     landmarks = read_scan_landmarks(args.landmarks, basis) if args.landmarks else None
+    weights = read_face_weights(args.ignore, faces, len(verts)) if args.ignore else None
     callback, close = tqdm_callback("register", disable=args.json or None)
     try:
-        res = code_of(basis, Scan(verts, faces, landmarks=landmarks), options, callback=callback).registration
+        res = code_of(basis, Scan(verts, faces, face_weights=weights, landmarks=landmarks), options,
+                      callback=callback).registration
     finally:
         close()
     save_mesh(args.output, res.vertices, basis.faces)
@@ -387,6 +403,10 @@ def cmd_demo(args):
           "(needs the bpy module: pip install -e \".[blender]\")")
 
 
+IGNORE_HELP = ("what registration should not fit (a floor, a wall): a .npy or text file of one weight per scan "
+               "vertex, 1 = ignore, 0 = keep (as the add-on's Ignore Group; a face weighs 1 - its vertices' mean)")
+
+
 def _pair_parser(sub, name, func, text, frames=None):
     """A verb on two meshes A, B and a basis; frames = (help of --steps, --no-anchor, --no-detail) for the
     verbs that write frames to -o."""
@@ -394,6 +414,11 @@ def _pair_parser(sub, name, func, text, frames=None):
     p.add_argument("a", type=Path)
     p.add_argument("b", type=Path)
     p.add_argument("--basis", default=DEFAULT_BASIS, help=f"bundled basis name or .npz path (default: {DEFAULT_BASIS})")
+    for end in ("a", "b"):
+        p.add_argument(f"--landmarks-{end}", type=Path, metavar="FILE",
+                       help=f"where the basis' named landmarks are on {end.upper()}, a raw scan (as register --landmarks)")
+        p.add_argument(f"--ignore-{end}", type=Path, metavar="MASK",
+                       help=f"what to ignore of {end.upper()}, a raw scan (as register --ignore)")
     if frames is not None:
         steps, anchor, detail = frames
         p.add_argument("--steps", type=int, default=10, help=steps)
@@ -434,6 +459,7 @@ def build_parser():
     p.add_argument("--landmarks", type=Path,
                    help="where the basis' named landmarks are on the scan: JSON {name: [x, y, z]} or CSV lines "
                         "'name, x, y, z[, weight]' (a template vertex index may stand for a name)")
+    p.add_argument("--ignore", type=Path, metavar="MASK", help=IGNORE_HELP)
     p.add_argument("--kernel", default="auto", choices=("auto", "binet", "linear"),
                    help="varifold kernel: auto (default) is binet, and linear at the finest level of a noisy scan "
                         "(its faces wound consistently first); binet or linear on every level")
@@ -442,7 +468,9 @@ def build_parser():
     p.set_defaults(func=cmd_register)
 
     p = sub.add_parser("register-batch", help="register many scans (or a 4D sequence) on a Dask cluster, resumably")
-    p.add_argument("scans", nargs="*", type=Path, metavar="SCAN")
+    p.add_argument("scans", nargs="*", type=Path, metavar="SCAN",
+                   help="scan files; a scan's mask and landmarks are files next to it: SCAN.ignore.npy or .txt, "
+                        "SCAN.landmarks.json or .csv (as register's --ignore and --landmarks)")
     p.add_argument("--list", type=Path, help="a file of scan paths, one a line (relative to the file's folder)")
     p.add_argument("--basis", default=DEFAULT_BASIS, help=f"bundled basis name or .npz path (default: {DEFAULT_BASIS})")
     p.add_argument("-o", "--output", type=Path, required=True,
