@@ -6,6 +6,7 @@ installed ``bareesa`` package is used. The solver is imported lazily so that the
 add-on registers (and can offer to install dependencies) even when torch is missing.
 """
 
+import dataclasses
 import importlib
 from pathlib import Path
 
@@ -109,8 +110,7 @@ def schedule(basis, preset):
     if preset == "PAPER":
         return basis.schedule
     if preset == "FAST":
-        level = module("latent").Level
-        return tuple(level(lv.sigma, lv.weight, min(lv.steps, FAST_STEPS), min(lv.max_iter, FAST_ITER))
+        return tuple(dataclasses.replace(lv, steps=min(lv.steps, FAST_STEPS), max_iter=min(lv.max_iter, FAST_ITER))
                      for lv in basis.schedule)
     raise module("errors").InputError(f"unknown schedule preset {preset!r}")
 

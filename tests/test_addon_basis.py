@@ -220,3 +220,17 @@ def test_named_parts_of_a_basis_become_vertex_groups_of_registered_objects(scene
                 if g.group == group.index:
                     got[v.index] = g.weight
         np.testing.assert_allclose(got, weights[k], atol=1e-6)
+
+
+def test_the_fast_schedule_shortens_every_level_of_the_basis_and_keeps_the_rest():
+    from bareesa.basis_io import load_basis
+    from bareesa_addon import solver
+
+    basis = load_basis("human")
+    fast = solver.schedule(basis, "FAST")
+    assert len(fast) == len(basis.schedule) and any(lv.plateau for lv in basis.schedule)
+    for short, level in zip(fast, basis.schedule):
+        assert short.steps == min(level.steps, solver.FAST_STEPS) and short.max_iter == min(level.max_iter,
+                                                                                               solver.FAST_ITER)
+        assert (short.sigma, short.weight, short.plateau) == (level.sigma, level.weight, level.plateau)
+    assert solver.schedule(basis, "PAPER") == basis.schedule

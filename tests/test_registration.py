@@ -2,6 +2,7 @@
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -503,3 +504,20 @@ def test_a_noisy_scan_with_flipped_faces_registers_as_the_clean_one(space):
     res = registration.register(basis, noisy, faces, prealign=False, backend="dense")
     assert clean.levels[-1]["kernel"] == "linear" and res.levels[-1]["turned_faces"] == flip.sum()
     assert np.abs(res.vertices - clean.vertices).max() < 1e-6 * np.ptp(clean.vertices, axis=0).max()
+
+
+def test_a_levels_own_plateau_reaches_its_solve_and_is_checked(space, monkeypatch):
+    """Level.plateau replaces LEVEL_PLATEAU's tolerance for that level alone; the other levels keep the default."""
+    basis = space["basis"]
+    coarse, fine = basis.schedule
+    seen = []
+    real = level_problem.minimize_lbfgs
+    monkeypatch.setattr(level_problem, "minimize_lbfgs", lambda *a, **k: (seen.append(k["plateau"]), real(*a, **k))[1])
+    res = registration.register(basis, space["scan"], space["faces"], prealign=False, backend="dense",
+                                schedule=(coarse, replace(fine, plateau=0.25)))
+    n, tol = level_problem.LEVEL_PLATEAU
+    assert seen == [(n, tol), (n, 0.25)] and tol != 0.25
+    assert np.abs(res.code - space["alpha"]).max() < 0.1 * np.linalg.norm(space["alpha"])
+    for bad in (0.0, 1.0, -1e-3):
+        with pytest.raises(InputError, match="plateau"):
+            Level(0.1, 1e3, 2, 10, plateau=bad)

@@ -38,7 +38,7 @@ import scipy.sparse as sp
 
 from bareesa.basis_building import build_basis
 from bareesa.h2_metric import H2Weights
-from bareesa.latent import PAPER_BODY_SCHEDULE
+from bareesa.latent import PAPER_BODY_SCHEDULE, Level
 from bareesa.statistics import pose_prototypes
 
 from .common import checked_template, elastic_paths, fit_basis_distribution, topology_signature
@@ -86,8 +86,15 @@ DISTRIBUTION_COMPONENTS = {"pose": 12, "shape": 3}
 #: after 300). At 1e6 over 4 random bodies (seeds 1-4) the error is unchanged (1.7-3.0 mm) and the
 #: finest level stops after 27-76 iterations instead of 50-151; on the slow body 1.7 mm after 88 (8 bodies
 #: with the other registration changes of 2026-12-03: bench/README.md).
+#: A middle level (sigma 0.05 m on 1.7 m, weight 1e8, binned: ~0.24 s an iteration against the finest
+#: level's ~0.43 s) does the finest level's slow part, the limbs sliding into place, for less; it stops
+#: at a 1e-4 plateau (at the default 1e-3 it stopped early and one body ended 0.5 mm worse). Over 5
+#: random bodies (seeds 21-23, 25, 26), from their second level's result: the last two levels took
+#: 10-29 s (18.4 mean) against 15-59 s (31.3) for the finest alone, mean vertex error 1.18-2.81 mm (1.73)
+#: against 1.45-2.81 (1.93), none worse; a scan whose finest level was short anyway took 3 s more, 0.5 mm
+#: better (bench/README.md, 2026-12-05).
 HUMAN_SCHEDULE = (PAPER_BODY_SCHEDULE[0], replace(PAPER_BODY_SCHEDULE[1], weight=1e6),
-                  replace(PAPER_BODY_SCHEDULE[2], max_iter=300))
+                  Level(0.05 / 1.7, 1e8, 4, 200, plateau=1e-4), replace(PAPER_BODY_SCHEDULE[2], max_iter=300))
 
 #: Mannequin bone -> [(Anny bone, share of the rotation angle)].
 BONE_MAP = {"spine": [("spine05", 0.5), ("spine04", 0.5)], "chest": [("spine03", 0.5), ("spine02", 0.5)],

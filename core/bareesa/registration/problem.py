@@ -24,8 +24,9 @@ from .prealign import PREALIGN_CELL, CoarseVarifold, coarse_measure, surface_mom
 #: L-BFGS stops a level when an iteration lowers the objective by less than this relative amount
 #: (the objective is dominated by weight x varifold; later digits only polish the path's interior)
 LEVEL_FTOL = 1e-9
-#: ... and when it fell by less than LEVEL_PLATEAU[1] (relative) over the last LEVEL_PLATEAU[0]
-#: iterations: easy problems plateau within ~15 iterations, a body in a new pose needs ~100
+#: ... and when it fell by less than LEVEL_PLATEAU[1] (relative; a level's own ``Level.plateau`` instead
+#: when it has one) over the last LEVEL_PLATEAU[0] iterations: easy problems plateau within ~15
+#: iterations, a body in a new pose needs ~100
 LEVEL_PLATEAU = (5, 1e-3)
 #: ... keeping this many past steps (``minimize_lbfgs(memory=)``): on slow `human` finest levels (90-133
 #: iterations, a limb sliding into place late) 100 instead of 20 reached a lower objective in about as
@@ -392,7 +393,8 @@ class RegistrationProblem:
             return {"code": path[-1], "transform": moved}
 
         x, value, nit = minimize_lbfgs(objective, x0, self.monitor, max_iter=level.max_iter,
-                                       progress=progress, message=message, ftol=LEVEL_FTOL, plateau=LEVEL_PLATEAU,
+                                       progress=progress, message=message, ftol=LEVEL_FTOL,
+                                       plateau=(LEVEL_PLATEAU[0], level.plateau or LEVEL_PLATEAU[1]),
                                        memory=LEVEL_MEMORY,
                                        preview=(PREVIEW_EVERY, result_so_far) if self.monitor.wants_preview else None)
         with torch.no_grad():
