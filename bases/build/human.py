@@ -91,8 +91,9 @@ DISTRIBUTION_COMPONENTS = {"pose": 12, "shape": 3}
 #: at a 1e-4 plateau (at the default 1e-3 it stopped early and one body ended 0.5 mm worse). Over 5
 #: random bodies (seeds 21-23, 25, 26), from their second level's result: the last two levels took
 #: 10-29 s (18.4 mean) against 15-59 s (31.3) for the finest alone, mean vertex error 1.18-2.81 mm (1.73)
-#: against 1.45-2.81 (1.93), none worse; a scan whose finest level was short anyway took 3 s more, 0.5 mm
-#: better (bench/README.md, 2026-12-05).
+#: against 1.45-2.81 (1.93), none worse. Not a speed-up on average: 16 held-out scans registered with
+#: both schedules took 5 % more time in all and their mean vertex error fell from 0.354 % to 0.313 % of
+#: the body size (max 0.556 -> 0.450 %; bench/README.md, 2026-12-05).
 HUMAN_SCHEDULE = (PAPER_BODY_SCHEDULE[0], replace(PAPER_BODY_SCHEDULE[1], weight=1e6),
                   Level(0.05 / 1.7, 1e8, 4, 200, plateau=1e-4), replace(PAPER_BODY_SCHEDULE[2], max_iter=300))
 
