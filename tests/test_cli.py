@@ -473,4 +473,4 @@ def test_pair_verbs_give_each_raw_scan_its_own_mask_and_landmarks(capsys, tmp_pa
     # a mesh in the template's topology is projected, not registered: a mask for it is refused
     rc, _, err = run(capsys, "interpolate", tmp_path / "t.ply", tmp_path / "b.ply", "--basis", tmp_path / "s.npz",
                      "--ignore-a", tmp_path / "mask.npy", "-o", tmp_path / "frames")
-    assert rc == 2 and "--ignore-a only apply to raw scans" in err and not (tmp_path / "frames").exists()
+    assert rc == 2 and "--ignore-a applies to raw scans only" in err and not (tmp_path / "frames").exists()

@@ -174,7 +174,7 @@ def _load_input(basis, path, landmarks=None, ignore=None, options=("--landmarks"
         return found
     if isinstance(found, TemplateMesh):
         raise InputError(f"{path} is in the basis' template topology (its code is a projection, not a registration): "
-                         f"{' and '.join(given)} only apply to raw scans")
+                         f"{' and '.join(given)} {'apply' if len(given) > 1 else 'applies'} to raw scans only")
     return Scan(v, f, face_weights=None if ignore is None else read_face_weights(ignore, f, len(v)),
                 landmarks=None if landmarks is None else read_scan_landmarks(landmarks, basis))
 
