@@ -16,6 +16,8 @@ def test_text_masks_take_spaces_commas_lines_and_comments_like_the_npy_file(tmp_
     (tmp_path / "words.txt").write_text("0 1 floor 0 0\n")
     with pytest.raises(InputError, match="cannot read the mask"):
         read_ignore_weights(tmp_path / "words.txt", 5)
+    np.save(tmp_path / "bool.npy", values >= 0.5)  # a selection saved as it is
+    np.testing.assert_array_equal(read_ignore_weights(tmp_path / "bool.npy", 5), [0, 1, 0, 1, 1])
     np.save(tmp_path / "flat.npy", values.reshape(5, 1))
     with pytest.raises(InputError, match=r"expected 5 numbers.*shape \(5, 1\)"):
         read_ignore_weights(tmp_path / "flat.npy", 5)

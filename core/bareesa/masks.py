@@ -39,6 +39,8 @@ def read_ignore_weights(path, n_verts):
     except (OSError, ValueError, UnicodeDecodeError) as err:
         raise InputError(f"cannot read the mask {path}: {str(err).splitlines()[0]}") from None
     values = np.asarray(values)
+    if values.dtype == bool:  # e.g. np.save(path, verts[:, 2] < 0.02)
+        values = values.astype(np.float64)
     if values.ndim != 1 or len(values) != n_verts or not np.issubdtype(values.dtype, np.number):
         raise InputError(f"mask {path}: expected {n_verts} numbers, one ignore weight per scan vertex, "
                          f"got {values.size if values.ndim else 1}" + (f" in shape {values.shape}" if values.ndim > 1
