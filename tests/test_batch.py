@@ -365,7 +365,8 @@ def test_a_scans_mask_and_landmark_files_register_with_it_and_a_change_to_them_i
     a = (np.arange(4)[:, None] * 5 + np.arange(4)[None, :]).ravel()
     tris = np.concatenate([np.stack([a, a + 5, a + 6], 1), np.stack([a, a + 6, a + 1], 1)]) + len(sphere)
     verts, faces = np.concatenate([sphere, plate]), np.concatenate([faces, tris])
-    scan = save_mesh(tmp_path / "s.ply", verts, faces) or tmp_path / "s.ply"
+    scan = tmp_path / "s.ply"
+    save_mesh(scan, verts, faces)
     plain_hash = batch.input_hash(scan)
     assert plain_hash == batch.file_hash(scan)  # no sidecar: the records of earlier batches stay valid
     ignore = (np.arange(len(verts)) >= len(sphere)).astype(float)
@@ -382,7 +383,8 @@ def test_a_scans_mask_and_landmark_files_register_with_it_and_a_change_to_them_i
         # a warm start maps the scan, and so its landmarks, by the previous frame's alignment: the same scan
         # moved, with its files, starts from the first one's code and the motion back
         before = Similarity(random_rotation(4), 1.1, np.array([0.2, -0.1, 0.3]))
-        moved = save_mesh(tmp_path / "m.ply", before.invert(verts), faces) or tmp_path / "m.ply"
+        moved = tmp_path / "m.ply"
+        save_mesh(moved, before.invert(verts), faces)
         np.save(tmp_path / "m.ignore.npy", ignore)
         (tmp_path / "m.landmarks.csv").write_text(f"0, {', '.join(f'{x!r}' for x in before.invert(mark)[0])}\n")
         warm = batch.register_one(basis, moved, {"status": "ok", "name": "prev", "code": rec["code"],
