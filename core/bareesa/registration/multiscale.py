@@ -352,6 +352,12 @@ def _start(path, poses, alignment):
     return np.stack([np.zeros_like(path[-1]), poses[alignment.reference]])
 
 
+def _pose_judge(levels):
+    """The level whose sigma judges the pose stage's short solves (``try_poses``' judge): the one after the
+    second, the second itself in a two-level schedule."""
+    return levels[min(2, len(levels) - 1)]
+
+
 def _level_name(k, n_levels):
     """The progress message of level k (0-based) of n_levels."""
     return f"registration level {k + 1}/{n_levels}"
@@ -430,7 +436,7 @@ def _deep_screen(problem, basis, levels, kernels, poses, path, candidates, used,
         p, t, first = problem.solve_level(levels[0], _start(path, poses, candidate), candidate.transform, (a, m),
                                           _level_name(0, len(levels)) + label, kernels[0])
         if poses is not None:  # as the full registration goes on: a body far from every start needs its pose
-            p, t, _ = try_poses(problem, basis, levels[1], levels[min(2, len(levels) - 1)], p, t, poses, (m, m),
+            p, t, _ = try_poses(problem, basis, levels[1], _pose_judge(levels), p, t, poses, (m, m),
                                 _level_name(1, len(levels)) + label, kernels[1])
         p, t, _ = problem.solve_level(short, p, t, (m, b), _level_name(1, len(levels)) + label,
                                       kernels[1], orient=True)
@@ -453,8 +459,8 @@ def _rest(problem, basis, levels, kernels, poses, candidates, used, monitor, bou
     for k in range(1, len(levels)):
         span = (bounds[k], bounds[k + 1])
         if k == 1 and tries_poses:
-            path, transform, share = try_poses(problem, basis, levels[1], levels[min(2, len(levels) - 1)], path,
-                                                transform, poses, span, name(1), kernels[1])
+            path, transform, share = try_poses(problem, basis, levels[1], _pose_judge(levels), path, transform,
+                                                poses, span, name(1), kernels[1])
             span = (span[0] + share * (span[1] - span[0]), span[1])
         path, transform, lv_report = problem.solve_level(levels[k], path, transform, span, name(k), kernels[k],
                                                          orient=True)
