@@ -183,6 +183,14 @@ def motion(tiny, tmp_path_factory):
                        rotation=random_rotation(3), shift=(0.5, 0.2, 0.0)) for k in range(4)]
 
 
+def test_a_warm_frame_skips_the_coarsest_level_and_runs_at_most_the_two_finest():
+    levels = [Level(sigma, 1e3, 2, 10) for sigma in (0.4, 0.2, 0.1, 0.05)]
+    assert batch.warm_schedule(levels) == tuple(levels[2:])      # 4 levels: the middle and the finest
+    assert batch.warm_schedule(levels[1:]) == tuple(levels[2:])  # 3 levels: all but the coarsest
+    assert batch.warm_schedule(levels[2:]) == tuple(levels[3:])  # 2 levels: the finest
+    assert batch.warm_schedule(levels[:1]) == tuple(levels[:1])  # one level: that one
+
+
 def test_sequence_warm_starts_take_fewer_iterations_and_seams_are_checked(tiny, motion, client, tmp_path):
     cold = batch.register_batch(tiny[0], motion, tmp_path / "cold", client=client)
     warm = batch.register_batch(tiny[0], motion, tmp_path / "warm", client=client, sequence=True, chunk=2)
@@ -396,6 +404,8 @@ def test_a_scans_mask_and_landmark_files_register_with_it_and_a_change_to_them_i
     np.testing.assert_allclose(rec["code"], ref.code, rtol=1e-7, atol=1e-9)
     assert warm["status"] == "ok" and warm["warm_start"] == "prev"
     np.testing.assert_allclose(warm["code"], rec["code"], atol=0.05)
+    finest = batch.warm_schedule(basis.schedule)  # a warm start runs the finest levels only
+    assert [lv["weight"] for lv in warm["levels"]] == [lv.weight for lv in finest] and len(finest) < len(rec["levels"])
     np.save(tmp_path / "s.ignore.npy", 0.5 * ignore)
     assert batch.input_hash(scan) not in (plain_hash, masked_hash)  # an edited mask registers the scan again
     (tmp_path / "s.ignore.txt").write_text("0\n")

@@ -16,8 +16,8 @@ what finished.
 With ``sequence=True`` the scans are the frames of one 4D capture, in order, cut into chunks that
 run in parallel: a chunk's first frame is registered fully, each further frame starts from the
 previous frame's code and alignment (the scan mapped by the previous transform, no pre-alignment,
-no pose candidates, the schedule less its WARM_SKIP_LEVELS coarsest levels). The seams between chunks
-are checked for jumps against the median frame-to-frame motion.
+no pose candidates, at most the schedule's WARM_LEVELS finest levels: ``warm_schedule``). The seams
+between chunks are checked for jumps against the median frame-to-frame motion.
 ``register_scans`` is the same on scans in memory (the add-on's *Register Scans* with several
 selected): a LocalCluster of single-threaded processes, one progress bar fed by the workers'
 events (with the live preview), cancellation that stops the processes, and the results returned,
@@ -56,10 +56,11 @@ SUMMARY_CSV = "summary.csv"
 RECORD_VERSION = 1
 #: A seam whose vertex jump is above this many times the median frame-to-frame motion is flagged.
 SEAM_FACTOR = 3.0
-#: A warm-started frame of a sequence skips this many of the schedule's coarsest levels (the finest always
-#: runs): the previous frame gives the far pose they find. On a human capture (3 levels) the finest level
-#: alone took twice as long as the two finest from the previous code (bench/README).
-WARM_SKIP_LEVELS = 1
+#: A warm-started frame of a sequence skips the schedule's coarsest level (the previous frame gives the far
+#: pose it finds) and runs at most this many of its finest levels. On a human capture the finest level alone
+#: took twice as long as the two finest from the previous code (3 levels); with the 4-level schedule the two
+#: finest took 24 s a frame against 31 s for the three finest, at the same error (bench/README).
+WARM_LEVELS = 2
 #: Columns of summary.csv, in order.
 SUMMARY_COLUMNS = ("index", "name", "scan", "status", "varifold", "chamfer", "residual", "poor_fit", "iterations",
                    "seconds", "worker", "warm_start", "mesh", "seam_jump", "seam_flagged", "error")
@@ -164,6 +165,13 @@ def _worker_address():
         return "local"
 
 
+def warm_schedule(schedule):
+    """The levels a warm-started frame runs: all but the coarsest of ``schedule``, at most the WARM_LEVELS
+    finest (a one-level schedule: that level) -> tuple."""
+    schedule = tuple(schedule)
+    return schedule[max(len(schedule) - WARM_LEVELS, min(1, len(schedule) - 1)):]
+
+
 def register_one(basis, scan, previous=None, threads=1, options=None):
     """Register one scan file (run on a worker): -> record dict (status "ok" with the result, or "failed"
     with the one-line error). previous: the previous frame's record (warm start from its code and
@@ -185,10 +193,10 @@ def register_one(basis, scan, previous=None, threads=1, options=None):
         marks = None if side["landmarks"] is None else read_scan_landmarks(side["landmarks"], basis)
         if previous is not None and previous.get("status") == "ok":
             # warm start: map the scan by the previous alignment, start from the previous code
-            # and skip the coarsest levels (they find a far pose the previous frame gives)
+            # and run the finest levels only (the coarser ones find a far pose the previous frame gives)
             before = Similarity.from_dict(previous["transform"])
-            schedule = tuple(basis.schedule if kwargs.get("schedule") is None else kwargs["schedule"])
-            kwargs["schedule"] = schedule[min(WARM_SKIP_LEVELS, len(schedule) - 1):]
+            kwargs["schedule"] = warm_schedule(basis.schedule if kwargs.get("schedule") is None
+                                               else kwargs["schedule"])
             res = registration.register(basis, before.apply(verts), faces, prealign=False, refine_transform=True,
                                         init_code=np.asarray(previous["code"]), pose_candidates=None,
                                         landmarks=_moved_landmarks(marks, before), **kwargs)
