@@ -85,6 +85,8 @@ def registration_rows(basis, faces, seqs, n_scans, seed=0):
                      "chamfer_mm": round(1e3 * chamfer(res.vertices, scan_v) / s, 1),
                      "hausdorff_mm": round(1e3 * hausdorff(res.vertices, scan_v) / s, 1),
                      "varifold": float(f"{varifold(res.vertices, basis.faces, scan_v, scan_f, sigma) / s**4:.3g}"),
+                     "residual": None if res.residual is None else round(float(res.residual), 6),
+                     "poor_fit": res.poor_fit, "retried": int(res.retried_alignments),
                      "seconds": round(seconds, 1)})
         _table(rows[-1:], list(rows[-1]), "") if k == 0 else print(
             "  ".join(str(v) for v in rows[-1].values()), flush=True)
@@ -92,8 +94,13 @@ def registration_rows(basis, faces, seqs, n_scans, seed=0):
 
 
 def _mean_row(rows):
-    """Column means of registration rows (the numeric columns)."""
-    return {k: round(float(np.mean([r[k] for r in rows])), 3) for k in rows[0] if k != "scan"}
+    """Column means of registration rows (the numeric columns), and how many fits were flagged poor."""
+    numeric = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
+    out = {k: round(float(np.mean([r[k] for r in rows])), 3) for k in rows[0]
+           if all(numeric(r.get(k)) for r in rows)}
+    if "poor_fit" in rows[0]:
+        out["poor_fits"] = sum(bool(r["poor_fit"]) for r in rows)
+    return out
 
 
 # ---------------------------------------------------------------------- interpolation

@@ -229,8 +229,10 @@ def test_the_fast_schedule_shortens_every_level_of_the_basis_and_keeps_the_rest(
     basis = load_basis("human")
     fast = solver.schedule(basis, "FAST")
     assert len(fast) == len(basis.schedule) and any(lv.plateau for lv in basis.schedule)
+    assert any(lv.binned for lv in basis.schedule)
     for short, level in zip(fast, basis.schedule):
         assert short.steps == min(level.steps, solver.FAST_STEPS) and short.max_iter == min(level.max_iter,
                                                                                                solver.FAST_ITER)
-        assert (short.sigma, short.weight, short.plateau) == (level.sigma, level.weight, level.plateau)
+        assert (short.sigma, short.weight, short.plateau, short.binned) == (level.sigma, level.weight, level.plateau,
+                                                                            level.binned)
     assert solver.schedule(basis, "PAPER") == basis.schedule

@@ -521,3 +521,23 @@ def test_a_levels_own_plateau_reaches_its_solve_and_is_checked(space, monkeypatc
     for bad in (0.0, 1.0, -1e-3):
         with pytest.raises(InputError, match="plateau"):
             Level(0.1, 1e3, 2, 10, plateau=bad)
+
+
+def test_a_level_binned_by_its_schedule_is_binned_unless_the_caller_says_otherwise(space):
+    """Level.binned decides a level's binning under binning="auto" (the pair-count rule otherwise);
+    register(binning=False / True) still overrides it."""
+    basis = space["basis"]
+    coarse, fine = basis.schedule
+    args = (basis, space["scan"], space["faces"])
+    auto = registration.register(*args, prealign=False, backend="dense", schedule=(coarse, fine))
+    assert auto.levels[-1]["binned"] is False  # the rule leaves the fine level on faces
+    own = registration.register(*args, prealign=False, backend="dense", schedule=(coarse, replace(fine, binned=True)))
+    assert own.levels[-1]["binned"] is True and own.levels[0]["binned"] == auto.levels[0]["binned"]
+    assert own.levels[-1]["varifold"] != auto.levels[-1]["varifold"]
+    off = registration.register(*args, prealign=False, backend="dense", binning=False,
+                                schedule=(coarse, replace(fine, binned=True)))
+    assert [lv["binned"] for lv in off.levels] == [False, False]
+    for level in (own, off):
+        assert np.abs(level.code - space["alpha"]).max() < 0.1 * np.linalg.norm(space["alpha"])
+    with pytest.raises(InputError, match="binned"):
+        Level(0.1, 1e3, 2, 10, binned="yes")

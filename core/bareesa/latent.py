@@ -31,7 +31,9 @@ class Level:
     any units); ``weight`` multiplies the varifold term (the paper's lambda);
     ``steps`` is the number of time steps of the latent path; the level ends after ``max_iter``
     iterations, or when its objective fell by less than ``plateau`` (relative) over the last few
-    iterations (None: ``registration.problem.LEVEL_PLATEAU``'s).
+    iterations (None: ``registration.problem.LEVEL_PLATEAU``'s); ``binned``: whether the level's
+    varifold is summed over cells when ``register``'s binning is "auto" (None: its pair-count rule,
+    ``registration.problem.BIN_GAIN``).
     """
 
     sigma: float
@@ -39,12 +41,15 @@ class Level:
     steps: int
     max_iter: int = 200
     plateau: float | None = None
+    binned: bool | None = None
 
     def __post_init__(self):
         if not (self.sigma > 0 and self.weight > 0 and self.steps >= 1 and self.max_iter >= 1):
             raise InputError(f"invalid schedule level {self}: sigma, weight > 0 and steps, max_iter >= 1")
         if self.plateau is not None and not 0 < self.plateau < 1:
             raise InputError(f"invalid schedule level {self}: plateau is a relative fall between 0 and 1")
+        if self.binned not in (None, True, False):
+            raise InputError(f"invalid schedule level {self}: binned is true, false or null")
 
 
 #: The paper's body schedule (sigma 0.4 -> 0.1 -> 0.025 m on ~1.7 m bodies), relative to height.

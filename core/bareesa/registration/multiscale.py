@@ -249,10 +249,10 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     bias; an oriented kernel on a level after the first runs on the scan's faces wound consistently and
     turned like the fit so far (``problem.orient_like``), so flipped faces do no harm; backend: of the
     varifold (``bareesa.varifold``); binning: "auto" evaluates a level's varifold on cell sums
-    (``BinnedVarifoldLoss``) when sigma is so large that this cuts the face pairs 20-fold, True
-    always, False never (an unbinned level still sums the scan alone over cells of SCAN_CELL x sigma
-    when that leaves fewer points, ``VarifoldLoss(target_cell=)``, and truncates the kernel at
-    FINE_TOL); refine_transform: optimise the
+    (``BinnedVarifoldLoss``) when the level says so (``Level.binned``), or when it does not and sigma
+    is so large that this cuts the face pairs 20-fold, True always, False never (an unbinned level
+    still sums the scan alone over cells of SCAN_CELL x sigma when that leaves fewer points,
+    ``VarifoldLoss(target_cell=)``, and truncates the kernel at FINE_TOL); refine_transform: optimise the
     similarity jointly with the path (default: as prealign); init_code (P,) starts from the
     straight path 0 -> init_code; pose_candidates (K, P): codes whose pose group (the whole code
     when the basis has no other group) is tried as a start of the second level (see POSE_FINALISTS),

@@ -301,18 +301,20 @@ class RegistrationProblem:
                                     self.scan_weights_np)
         return torch.as_tensor(faces, dtype=torch.long, device=self.device), turned
 
-    def level_loss(self, kernel, sigma, target, scan_faces, code, bin_cell=BIN_CELL):
+    def level_loss(self, kernel, sigma, target, scan_faces, code, bin_cell=BIN_CELL, binned=None):
         """The varifold loss of one level against the scan (target (M, 3) in the template frame):
-        binned (``BinnedVarifoldLoss`` about F(code), cells of bin_cell x sigma) as ``self.binning`` says,
-        else truncated at FINE_TOL with the scan summed over cells of SCAN_CELL (ORIENTED_SCAN_CELL for an
-        oriented kernel) x sigma -> (loss, binned)."""
-        if self.binning:
+        binned (``BinnedVarifoldLoss`` about F(code), cells of bin_cell x sigma) as ``self.binning`` says
+        (when "auto", as the level's own ``binned`` says unless it is None), else truncated at FINE_TOL with
+        the scan summed over cells of SCAN_CELL (ORIENTED_SCAN_CELL for an oriented kernel) x sigma
+        -> (loss, binned)."""
+        binning = binned if self.binning == "auto" and binned is not None else self.binning
+        if binning:
             start = decode(self.template, self.fields, torch.as_tensor(code, dtype=self.dtype, device=self.device))
             loss = BinnedVarifoldLoss(start, self.faces, target, scan_faces, sigma, kernel, self.scan_weights,
                                       cell=bin_cell * sigma, backend=self.backend)
             n_s, n_t = self.faces.shape[0], scan_faces.shape[0]
             pairs = loss.n_groups * (loss.n_groups + loss.n_target)
-            if self.binning is True or pairs <= BIN_GAIN * n_s * (n_s + n_t):
+            if binning is True or pairs <= BIN_GAIN * n_s * (n_s + n_t):
                 return loss, True
         weights, normals, rings = self.scan_weights, None, 0
         if SCAN_NORMAL_RADIUS and not is_oriented(kernel):
@@ -347,7 +349,7 @@ class RegistrationProblem:
         scan_faces, turned = self.scan_faces, None
         if orient and any(is_oriented(name) for name in names):
             scan_faces, turned = self.oriented_scan_faces(path[-1], transform)
-        losses = [self.level_loss(name, sigma, target, scan_faces, path[-1], bin_cell) for name in names]
+        losses = [self.level_loss(name, sigma, target, scan_faces, path[-1], bin_cell, level.binned) for name in names]
         binned = losses[0][1]
         losses = [loss for loss, _ in losses]
         if self.marks is not None:
