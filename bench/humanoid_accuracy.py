@@ -96,7 +96,7 @@ def registration_rows(basis, faces, seqs, n_scans, seed=0):
 def _mean_row(rows):
     """Column means of registration rows (the numeric columns), and how many fits were flagged poor."""
     numeric = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
-    out = {k: round(float(np.mean([r[k] for r in rows])), 3) for k in rows[0]
+    out = {k: round(float(np.mean([r[k] for r in rows])), 6 if k == "residual" else 3) for k in rows[0]
            if all(numeric(r.get(k)) for r in rows)}
     if "poor_fit" in rows[0]:
         out["poor_fits"] = sum(bool(r["poor_fit"]) for r in rows)
