@@ -537,7 +537,8 @@ def test_a_level_binned_by_its_schedule_is_binned_unless_the_caller_says_otherwi
     off = registration.register(*args, prealign=False, backend="dense", binning=False,
                                 schedule=(coarse, replace(fine, binned=True)))
     assert [lv["binned"] for lv in off.levels] == [False, False]
-    for level in (own, off):
-        assert np.abs(level.code - space["alpha"]).max() < 0.1 * np.linalg.norm(space["alpha"])
-    with pytest.raises(InputError, match="binned"):
-        Level(0.1, 1e3, 2, 10, binned="yes")
+    for res in (own, off):
+        assert np.abs(res.code - space["alpha"]).max() < 0.1 * np.linalg.norm(space["alpha"])
+    for bad in ("yes", 1):
+        with pytest.raises(InputError, match="binned"):
+            Level(0.1, 1e3, 2, 10, binned=bad)

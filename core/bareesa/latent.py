@@ -48,7 +48,7 @@ class Level:
             raise InputError(f"invalid schedule level {self}: sigma, weight > 0 and steps, max_iter >= 1")
         if self.plateau is not None and not 0 < self.plateau < 1:
             raise InputError(f"invalid schedule level {self}: plateau is a relative fall between 0 and 1")
-        if self.binned not in (None, True, False):
+        if not (self.binned is None or isinstance(self.binned, bool)):
             raise InputError(f"invalid schedule level {self}: binned is true, false or null")
 
 
