@@ -187,6 +187,47 @@ def test_a_poor_fit_is_registered_again_from_other_alignments(basis, monkeypatch
         basis.fit_check = {}
 
 
+
+def test_with_pose_prototypes_the_first_fit_starts_from_the_best_prealignment(basis, monkeypatch):
+    """With pose prototypes the pre-alignment's ranking decides the first fit (no screening of the others);
+    a poor fit is retried from the other candidates in that order, then the fit's half turns. Without
+    prototypes every candidate is screened, as before."""
+    from bareesa.latent import Level
+
+    schedule = (Level(0.25, 1e3, 1, 10), Level(0.1, 1e5, 1, 10))
+    code = np.array([0.6, -0.5, 0.4, 0.5])
+    u, faces = synthetic.resampled_sphere(2, seed=3)
+    truth = basis.template + np.tensordot(code, basis.fields, axes=1)
+    scan = truth[np.argmin(((u[:, None] - synthetic.icosphere(2)[0][None]) ** 2).sum(-1), axis=1)]
+    right = registration.register(basis, scan, faces, schedule=schedule, pose_candidates=None, retry=False)
+    flips = multiscale.half_turns(basis)
+    ranked = [multiscale.Alignment(0.1 * (k + 1), t) for k, t in
+              enumerate([right.transform] + [f.compose(right.transform) for f in flips[:2]])]
+    monkeypatch.setattr(multiscale, "prealign_candidates", lambda *a, **k: list(ranked))
+    tried, real_fit = [], multiscale._fit
+
+    def fit_spy(*args, **kwargs):
+        tried.append(list(args[6]))  # args[6]: the candidate alignments
+        return real_fit(*args, **kwargs)
+
+    monkeypatch.setattr(multiscale, "_fit", fit_spy)
+    prototypes = code[None] + 0.1
+    first = registration.register(basis, scan, faces, schedule=schedule, pose_candidates=prototypes, retry=False)
+    assert tried == [ranked[:1]] and first.prealignment is right.transform
+    tried.clear()
+    registration.register(basis, scan, faces, schedule=schedule, pose_candidates=None, retry=False)
+    assert tried == [ranked]  # no prototypes: every candidate screened
+    tried.clear()
+    basis.fit_check = {"poor_fit_above": 0.0}  # every fit poor: the retry runs, short then deeper
+    try:
+        again = registration.register(basis, scan, faces, schedule=schedule, pose_candidates=prototypes)
+    finally:
+        basis.fit_check = {}
+    assert tried[0] == ranked[:1] and len(tried) == 3
+    assert tried[1][:2] == ranked[1:] and len(tried[1]) == 2 + len(flips) == again.retried_alignments
+    assert tried[2] == tried[1]  # the deeper screening of the same alignments
+
+
 def _box_figure(left_arm, right_arm):
     """A body box with two arm boxes, each turned (axis, degrees) about its shoulder: (V, 3), (F, 3)."""
     parts = [trimesh.creation.box(extents=(0.4, 0.2, 1.0))]

@@ -1,18 +1,22 @@
 r"""``register``: the latent code of an unregistered scan, from pre-alignment to the finest level.
 
-A deformed scan of a nearly symmetric template can match a flipped template better than the right
-one, so ``register`` runs a short first level from each distinct pre-alignment candidate whose
-varifold is within PREALIGN_RATIO of the best, ranks them by ``screen_score`` and, when the best two
-are within SCREEN_TIE, runs a short second level from both and keeps the one that fits better at the
-second level's sigma (at the first level's sigma a body is nearly front/back symmetric). A basis with
-pose prototypes also lends them to the pre-alignment (a crouching scan's principal axes say nothing of
-the template's), and a candidate found against a prototype is screened from the straight path to that
-prototype's code (``_start``). A fit that is
+A basis with pose prototypes lends them to the pre-alignment (a crouching scan's principal axes say
+nothing of the template's), and the first fit starts from the best pre-alignment candidate: its rigid
+varifold against the template and the prototypes nearest the scan ranked a right alignment first on
+all 101 held-out `human` scans measured, while the latent screening below ranked one first on 79
+(bench/README, 2026-12-05): a candidate found against a prototype is screened from the straight path
+to that prototype's code (``_start``), so its screened objective carries that path's energy and shape
+and does not compare with the others'. Without prototypes a deformed scan of a nearly symmetric
+template can match a flipped template better than the right one, so ``register`` runs a short first
+level from each distinct pre-alignment candidate whose varifold is within PREALIGN_RATIO of the best,
+ranks them by ``screen_score`` and, when the best two are within SCREEN_TIE, runs a short second level
+from both and keeps the one that fits better at the second level's sigma (at the first level's sigma
+a body is nearly front/back symmetric). A fit that is
 still poor (``is_poor_fit``; most often a body registered facing backwards) is registered again from
-the other screened alignments and from itself turned half a turn about each of the template's
-principal axes (``half_turns``); if that fit is poor too, the same alignments are screened deeper
-(the whole first level and RETRY_SECOND_ITER iterations of the second, ranked by the fit residual),
-and the fit with the smallest residual is kept.
+the other pre-alignment candidates and from itself turned half a turn about each of the template's
+principal axes (``half_turns``), screened as above; if that fit is poor too, the same alignments are
+screened deeper (the whole first level and RETRY_SECOND_ITER iterations of the second, ranked by the
+fit residual), and the fit with the smallest residual is kept.
 """
 
 import math
@@ -305,13 +309,16 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
                                   refine_transform, dtype, device, monitor)
     lo = PREALIGN_FRACTION if prealign else 0.0
     used = sv if face_w is None else sv[np.unique(sf[face_w > 0])]
-    fit = _fit(problem, basis, levels, kernels, poses, path, candidates, used, monitor, lo)
+    # with pose prototypes the pre-alignment's ranking decides the first fit (see the module docstring)
+    screened = candidates if poses is None else candidates[:1]
+    fit = _fit(problem, basis, levels, kernels, poses, path, screened, used, monitor, lo)
     retried = 0
     if fit["poor"] and prealign and retry:
         # a poor fit is most often the body turned the wrong way round (a human scan facing backwards
-        # fits with a residual 2-15 times the right one's): go again from the other screened alignments
-        # and from the fit turned half a turn about each of the template's principal axes
-        others = [candidates[j] for j in fit["order"] if j != fit["best"]]
+        # fits with a residual 2-15 times the right one's): go again from the other alignments (the
+        # screened ones in their screened order, then the pre-alignment's next ones) and from the fit
+        # turned half a turn about each of the template's principal axes
+        others = [screened[j] for j in fit["order"] if j != fit["best"]] + candidates[len(screened):]
         others += [Alignment(0.0, flip.compose(fit["transform"])) for flip in half_turns(basis)]
         monitor.report(lo, f"registration: poor fit (residual {fit['residual']:.3g}), retrying from "
                            f"{len(others)} other alignments")
