@@ -3,7 +3,7 @@ r"""``register``: the latent code of an unregistered scan, from pre-alignment to
 A basis with pose prototypes lends them to the pre-alignment (a crouching scan's principal axes say
 nothing of the template's), and the first fit starts from the best pre-alignment candidate: its rigid
 varifold against the template and the prototypes nearest the scan ranked a right alignment first on
-all 101 held-out `human` scans measured, while the latent screening below ranked one first on 79
+all 104 held-out `human` scans measured, while the latent screening below ranked one first on 82
 (bench/README, 2026-12-05): a candidate found against a prototype is screened from the straight path
 to that prototype's code (``_start``), so its screened objective carries that path's energy and shape
 and does not compare with the others'. Without prototypes a deformed scan of a nearly symmetric
