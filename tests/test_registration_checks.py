@@ -189,9 +189,9 @@ def test_a_poor_fit_is_registered_again_from_other_alignments(basis, monkeypatch
 
 
 def test_with_pose_prototypes_the_first_fit_starts_from_the_best_prealignment(basis, monkeypatch):
-    """With pose prototypes the pre-alignment's ranking decides the first fit (no screening of the others);
-    a poor fit is retried from the other candidates in that order, then the fit's half turns. Without
-    prototypes every candidate is screened, as before."""
+    """With pose prototypes the pre-alignment's ranking decides the first fit (no screening of the others,
+    unless they score within PREALIGN_TIE of the best); a poor fit is retried from the other candidates in
+    that order, then the fit's half turns. Without prototypes every candidate is screened, as before."""
     from bareesa.latent import Level
 
     schedule = (Level(0.25, 1e3, 1, 10), Level(0.1, 1e5, 1, 10))
@@ -226,6 +226,11 @@ def test_with_pose_prototypes_the_first_fit_starts_from_the_best_prealignment(ba
     assert tried[0] == ranked[:1] and len(tried) == 3
     assert tried[1][:2] == ranked[1:] and len(tried[1]) == 2 + len(flips) == again.retried_alignments
     assert tried[2] == tried[1]  # the deeper screening of the same alignments
+    tried.clear()
+    tie = [ranked[0], ranked[1]._replace(score=ranked[0].score * (0.99 + multiscale.PREALIGN_TIE) / 2), ranked[2]]
+    monkeypatch.setattr(multiscale, "prealign_candidates", lambda *a, **k: list(tie))
+    registration.register(basis, scan, faces, schedule=schedule, pose_candidates=prototypes, retry=False)
+    assert tried == [tie[:2]]  # the pre-alignment cannot tell the best two apart: both screened
 
 
 def _box_figure(left_arm, right_arm):

@@ -1,7 +1,8 @@
 r"""``register``: the latent code of an unregistered scan, from pre-alignment to the finest level.
 
 A basis with pose prototypes lends them to the pre-alignment (a crouching scan's principal axes say
-nothing of the template's), and the first fit starts from the best pre-alignment candidate: its rigid
+nothing of the template's), and the first fit starts from the best pre-alignment candidate (the
+candidates within PREALIGN_TIE of it screened as below when there are several): its rigid
 varifold against the template and the prototypes nearest the scan ranked a right alignment first on
 all 104 held-out `human` scans measured, while the latent screening below ranked one first on 82
 (bench/README, 2026-12-05): a candidate found against a prototype is screened from the straight path
@@ -55,6 +56,12 @@ SCREEN_TIE = 1.5            # ... when the second best scored within this factor
 #: ones scored 0.0047 against 0.046 and the retry ended right (bench/README, 2026-12-05).
 RETRY_SECOND_ITER = 30
 PREALIGN_FRACTION = 0.1     # share of the progress bar given to the pre-alignment
+#: With pose prototypes the first fit starts from the best pre-alignment candidate, and only the candidates
+#: scoring within this factor of it are screened: on 101 held-out `human` scans with a wrong candidate the
+#: best wrong one scored at least 1.073 x the best right one; on one more (seed 30 scan 3 of
+#: ``held_out_scans``) a backwards candidate scored best, 1.024 x below the right one, and the screening
+#: picked the right one (bench/README)
+PREALIGN_TIE = 1.05
 #: "auto" registers the finest level with the oriented linear kernel when the scan's normal spread
 #: (``problem.normal_spread``) is above this, else with binet: the spread biases binet's minimiser
 #: (3.6 mm at paper scale, spread 0.08) and not linear's (0.88 mm), but linear is blind at sigma to thin
@@ -309,8 +316,10 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
                                   refine_transform, dtype, device, monitor)
     lo = PREALIGN_FRACTION if prealign else 0.0
     used = sv if face_w is None else sv[np.unique(sf[face_w > 0])]
-    # with pose prototypes the pre-alignment's ranking decides the first fit (see the module docstring)
-    screened = candidates if poses is None else candidates[:1]
+    # with pose prototypes the pre-alignment's ranking decides the first fit (see the module docstring),
+    # unless it cannot tell the best candidates apart
+    screened = candidates if poses is None else [c for c in candidates
+                                                 if c.score <= PREALIGN_TIE * candidates[0].score]
     fit = _fit(problem, basis, levels, kernels, poses, path, screened, used, monitor, lo)
     retried = 0
     if fit["poor"] and prealign and retry:
