@@ -14,6 +14,14 @@ def basis():
     return synthetic.smooth_sphere_basis(subdivisions=2, n_fields=4, seed=0)[0]
 
 
+def _remeshed_body(basis, code):
+    """F(code) on another triangulation (the nearest template point of each vertex of a resampled
+    sphere): -> scan (M, 3), faces (G, 3)."""
+    u, faces = synthetic.resampled_sphere(2, seed=3)
+    truth = basis.template + np.tensordot(code, basis.fields, axes=1)
+    return truth[np.argmin(((u[:, None] - synthetic.icosphere(2)[0][None]) ** 2).sum(-1), axis=1)], faces
+
+
 def test_one_triangle_scan_is_refused_before_any_solve(basis, monkeypatch):
     def solve(*args, **kwargs):
         raise AssertionError("the pre-alignment ran for a scan that should have been refused")
@@ -52,11 +60,7 @@ def test_a_wrong_shape_is_flagged_as_a_poor_fit_and_a_scan_of_the_basis_is_not(b
     from bareesa.latent import Level
 
     schedule = (Level(0.25, 1e3, 1, 10), Level(0.1, 1e5, 1, 10))
-    code = np.array([0.4, -0.3, 0.2, 0.3])
-    u, faces = synthetic.resampled_sphere(2, seed=3)
-    truth = basis.template + np.tensordot(code, basis.fields, axes=1)
-    # the same surface on another triangulation: nearest template points of the resampled sphere
-    good = truth[np.argmin(((u[:, None] - synthetic.icosphere(2)[0][None]) ** 2).sum(-1), axis=1)]
+    good, faces = _remeshed_body(basis, np.array([0.4, -0.3, 0.2, 0.3]))  # a shape of the basis, remeshed
     tv, tf = synthetic.torus(24, 12)
     torus = tv * np.sqrt((basis.template ** 2).sum(1).mean() / (tv ** 2).sum(1).mean())
     uncalibrated = registration.register(basis, good, faces, schedule=schedule)
@@ -117,9 +121,7 @@ def test_a_poor_fit_is_registered_again_from_other_alignments(basis, monkeypatch
 
     schedule = (Level(0.25, 1e3, 1, 10), Level(0.1, 1e5, 1, 10))
     code = np.array([0.6, -0.5, 0.4, 0.5])
-    u, faces = synthetic.resampled_sphere(2, seed=3)
-    truth = basis.template + np.tensordot(code, basis.fields, axes=1)
-    scan = truth[np.argmin(((u[:, None] - synthetic.icosphere(2)[0][None]) ** 2).sum(-1), axis=1)]
+    scan, faces = _remeshed_body(basis, code)
     right = registration.register(basis, scan, faces, schedule=schedule)
     flips = multiscale.half_turns(basis)
     assert all(np.allclose(f.compose(f).rotation, np.eye(3)) for f in flips)
@@ -187,7 +189,6 @@ def test_a_poor_fit_is_registered_again_from_other_alignments(basis, monkeypatch
         basis.fit_check = {}
 
 
-
 def test_with_pose_prototypes_the_first_fit_starts_from_the_best_prealignment(basis, monkeypatch):
     """With pose prototypes the pre-alignment's ranking decides the first fit (no screening of the others,
     unless they score within PREALIGN_TIE of the best); a poor fit is retried from the other candidates in
@@ -196,9 +197,7 @@ def test_with_pose_prototypes_the_first_fit_starts_from_the_best_prealignment(ba
 
     schedule = (Level(0.25, 1e3, 1, 10), Level(0.1, 1e5, 1, 10))
     code = np.array([0.6, -0.5, 0.4, 0.5])
-    u, faces = synthetic.resampled_sphere(2, seed=3)
-    truth = basis.template + np.tensordot(code, basis.fields, axes=1)
-    scan = truth[np.argmin(((u[:, None] - synthetic.icosphere(2)[0][None]) ** 2).sum(-1), axis=1)]
+    scan, faces = _remeshed_body(basis, code)
     right = registration.register(basis, scan, faces, schedule=schedule, pose_candidates=None, retry=False)
     flips = multiscale.half_turns(basis)
     ranked = [multiscale.Alignment(0.1 * (k + 1), t) for k, t in
