@@ -232,6 +232,28 @@ def test_with_pose_prototypes_the_first_fit_starts_from_the_best_prealignment(ba
     assert tried == [tie[:2]]  # the pre-alignment cannot tell the best two apart: both screened
 
 
+def test_with_pose_prototypes_the_first_level_is_the_short_screening_solve(basis):
+    """With pose prototypes even a lone alignment runs the first level as the screening does (one step,
+    1/SCREEN_DIVISOR of its iterations) and a short second level, from which the pose stage and the second
+    level go on; without prototypes a lone alignment runs the whole first level, and the code is as close."""
+    from bareesa.latent import Level
+
+    schedule = (Level(0.25, 1e3, 2, 160), Level(0.1, 1e5, 1, 30))
+    code = np.array([0.6, -0.5, 0.4, 0.5])
+    scan, faces = _remeshed_body(basis, code)
+    messages = []
+    quick = registration.register(basis, scan, faces, schedule=schedule, prealign=False,
+                                  pose_candidates=code[None] + 0.1, callback=lambda e: messages.append(e.message))
+    plain = []
+    whole = registration.register(basis, scan, faces, schedule=schedule, prealign=False, pose_candidates=None,
+                                  callback=lambda e: plain.append(e.message))
+    screen_iter = 160 // multiscale.SCREEN_DIVISOR
+    assert quick.levels[0]["steps"] == 1 and quick.levels[0]["iterations"] <= screen_iter
+    assert any("(screening)" in m for m in messages)
+    assert whole.levels[0]["steps"] == 2 and not any("(screening)" in m for m in plain)
+    assert np.linalg.norm(quick.code - code) < 1.5 * np.linalg.norm(whole.code - code) < 0.15
+
+
 def _box_figure(left_arm, right_arm):
     """A body box with two arm boxes, each turned (axis, degrees) about its shoulder: (V, 3), (F, 3)."""
     parts = [trimesh.creation.box(extents=(0.4, 0.2, 1.0))]

@@ -7,7 +7,10 @@ varifold against the template and the prototypes nearest the scan ranked a right
 all 104 held-out `human` scans measured, while the latent screening below ranked one first on 82
 (bench/README, 2026-12-05): a candidate found against a prototype is screened from the straight path
 to that prototype's code (``_start``), so its screened objective carries that path's energy and shape
-and does not compare with the others'. Without prototypes a deformed scan of a nearly symmetric
+and does not compare with the others'. With prototypes the first level is only ever that screening's
+short solve, followed by a short second level, and the pose stage and the second level go on from there
+(the whole first level, run for a lone candidate, bought no accuracy: on 14 held-out scans the fits were
+as good and 10 % faster without it, bench/README). Without prototypes a deformed scan of a nearly symmetric
 template can match a flipped template better than the right one, so ``register`` runs a short first
 level from each distinct pre-alignment candidate whose varifold is within PREALIGN_RATIO of the best,
 ranks them by ``screen_score`` and, when the best two are within SCREEN_TIE, runs a short second level
@@ -391,10 +394,17 @@ def _fit(problem, basis, levels, kernels, poses, path, candidates, used, monitor
     second, ranked by the fit residual): -> {path, transform, vertices, levels, initial, residual,
     poor, order, best}."""
     deep = deep and len(candidates) > 1 and len(levels) > 1
+    # with pose prototypes the first level is only ever the screening's short solve (see the module docstring)
+    quick = poses is not None and len(levels) > 1
+    screen = levels[0] if len(candidates) == 1 and not quick else replace(
+        levels[0], steps=1, max_iter=max(10, levels[0].max_iter // SCREEN_DIVISOR))
     # progress: the first level is tried from every candidate alignment
     budget = np.array([lv.steps * lv.max_iter for lv in levels], dtype=np.float64)
     if deep:
         budget[0] = len(candidates) * (budget[0] + levels[1].steps * RETRY_SECOND_ITER)
+    elif quick:
+        budget[0] = len(candidates) * screen.max_iter + levels[1].steps * SCREEN_SECOND_ITER * min(
+            len(candidates), SCREEN_FINALISTS)
     else:
         budget[0] *= 1 + (len(candidates) / SCREEN_DIVISOR if len(candidates) > 1 else 0)
     if poses is not None and len(levels) > 1:
@@ -405,10 +415,9 @@ def _fit(problem, basis, levels, kernels, poses, path, candidates, used, monitor
                      _deep_screen(problem, basis, levels, kernels, poses, path, candidates, used, bounds[:2]))
     name = lambda k: _level_name(k, len(levels))  # noqa: E731
     # screen every candidate alignment with a short first level; only the best one gets the full level
-    screen = levels[0] if len(candidates) == 1 else replace(levels[0], steps=1,
-                                                            max_iter=max(10, levels[0].max_iter // SCREEN_DIVISOR))
+    # (none with pose prototypes: the second level goes on from the best one's short second level)
     share = len(candidates) / SCREEN_DIVISOR
-    mid = bounds[1] if screen is levels[0] else bounds[0] + (bounds[1] - bounds[0]) * share / (1 + share)
+    mid = bounds[1] if screen is levels[0] or quick else bounds[0] + (bounds[1] - bounds[0]) * share / (1 + share)
     tries = []
     for j, candidate in enumerate(candidates):
         span = (mid - bounds[0]) / len(candidates)
@@ -416,19 +425,20 @@ def _fit(problem, basis, levels, kernels, poses, path, candidates, used, monitor
                                          (bounds[0] + j * span, bounds[0] + (j + 1) * span),
                                          name(0) + (f" (alignment {j + 1}/{len(candidates)})" if j else ""),
                                          kernels[0]))
-    best, resume, order = 0, None, [0]
+    best, resume, order, finalists = 0, None, [0], [0]
     if len(tries) > 1:
         # the screened objectives ranked on fine cells; the finer second level decides between the best
         scores = [problem.screen_score(levels[0], p[-1], t, r["energy"]) for p, t, r in tries]
         order = np.argsort(scores)
         best = int(order[0])
         finalists = [int(j) for j in order[:SCREEN_FINALISTS] if scores[j] <= SCREEN_TIE * scores[best]]
-        if len(levels) > 1 and len(finalists) > 1:
-            short = replace(levels[1], max_iter=SCREEN_SECOND_ITER)
-            second = [problem.solve_level(short, tries[j][0], tries[j][1], (mid, mid), name(1) + " (screening)",
-                                          kernels[1], orient=True) for j in finalists]
-            k = int(np.argmin([problem.screen_score(levels[1], p[-1], t, r["energy"]) for p, t, r in second]))
-            best, resume = finalists[k], second[k]  # the second level goes on from the winner's short one
+    if len(levels) > 1 and (len(finalists) > 1 or quick):
+        short = replace(levels[1], max_iter=SCREEN_SECOND_ITER)
+        second = [problem.solve_level(short, tries[j][0], tries[j][1], (mid, mid), name(1) + " (screening)",
+                                      kernels[1], orient=True) for j in finalists]
+        k = 0 if len(second) == 1 else int(np.argmin([problem.screen_score(levels[1], p[-1], t, r["energy"])
+                                                      for p, t, r in second]))
+        best, resume = finalists[k], second[k]  # the second level goes on from the winner's short one
     path, transform, first = tries[best]
     if resume is not None:
         path, transform = resume[0], resume[1]
