@@ -359,6 +359,31 @@ def test_pose_short_solves_run_on_a_one_step_path_and_coarser_cells(space, monke
     assert poses.POSE_STEPS < basis.schedule[1].steps and poses.POSE_BIN_CELL > level_problem.BIN_CELL
 
 
+def test_pose_candidates_are_ranked_after_a_few_iterations_and_only_the_best_goes_on(space, monkeypatch):
+    monkeypatch.setattr(poses, "POSE_ITER", 5)
+    monkeypatch.setattr(poses, "POSE_PICK_ITER", 2)
+    basis, alpha = space["basis"], space["alpha"]
+    rng = np.random.default_rng(4)
+    candidates = np.concatenate([rng.normal(size=(4, 6)), [alpha + 0.05 * rng.normal(size=6)]])
+    problem = _problem(space)
+    solved, solve = [], problem.solve_level
+
+    def spy(level, path, *args, **kwargs):
+        out = solve(level, path, *args, **kwargs)
+        solved.append((level.max_iter, path[-1].copy(), out[0][-1].copy(), args[1]))
+        return out
+
+    problem.solve_level = spy
+    path, _, share = poses.try_poses(problem, basis, basis.schedule[1], basis.schedule[-1], np.zeros((2, 6)),
+                                     Similarity(), candidates, (0.0, 1.0), "test")
+    *ranked, (rest_iter, rest_start, rest_end, rest_progress) = solved
+    assert len(ranked) >= 2 and [it for it, *_ in ranked] == [2] * len(ranked) and rest_iter == 3
+    ends = [end for _, _, end, _ in ranked]
+    assert any(np.array_equal(rest_start, end) for end in ends)  # the rest goes on from one of the ranked
+    assert np.array_equal(path[-1], rest_end) and np.linalg.norm(path[-1] - alpha) < 0.2 * np.linalg.norm(alpha)
+    assert ranked[0][3][0] == 0.0 and ranked[-1][3][1] <= rest_progress[0] < rest_progress[1] <= share + 1e-12
+
+
 def test_pose_stage_starts_the_level_from_the_candidate_that_fits(space, monkeypatch):
     # short solves of 2 iterations barely move: the stage must hand on the candidate near alpha*,
     # not the template it was given or the far candidates

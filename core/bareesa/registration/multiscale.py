@@ -39,7 +39,7 @@ from ..mesh import face_geometry, validate_mesh
 from ..progress import Monitor
 from ..transforms import Similarity
 from ..varifold import KERNELS
-from .poses import POSE_FINALISTS, POSE_ITER, check_pose_candidates, try_poses
+from .poses import check_pose_candidates, stage_budget, try_poses
 from .prealign import PREALIGN_RATIO, Alignment, landmark_alignment, prealign_candidates, surface_moments
 from .problem import RegistrationProblem, normal_spread
 
@@ -269,7 +269,7 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     ``VarifoldLoss(target_cell=)``, and truncates the kernel at FINE_TOL); refine_transform: optimise the
     similarity jointly with the path (default: as prealign); init_code (P,) starts from the
     straight path 0 -> init_code; pose_candidates (K, P): codes whose pose group (the whole code
-    when the basis has no other group) is tried as a start of the second level (see POSE_FINALISTS),
+    when the basis has no other group) is tried as a start of the second level (see ``poses.POSE_FINALISTS``),
     "auto" the basis' ``extras["pose_prototypes"]`` if it has them, None none; dtype: precision of
     the objective (the optimiser is float64); retry: when the fit is poor (and prealign), register
     again from other alignments and keep the better (``retried_alignments``).
@@ -408,7 +408,7 @@ def _fit(problem, basis, levels, kernels, poses, path, candidates, used, monitor
     else:
         budget[0] *= 1 + (len(candidates) / SCREEN_DIVISOR if len(candidates) > 1 else 0)
     if poses is not None and len(levels) > 1:
-        budget[1] += (POSE_FINALISTS + 1) * levels[1].steps * POSE_ITER
+        budget[1] += stage_budget()
     bounds = lo + (1 - lo) * np.concatenate([[0.0], np.cumsum(budget) / budget.sum()])
     if deep:
         return _rest(problem, basis, levels, kernels, poses, candidates, used, monitor, bounds,
