@@ -95,9 +95,10 @@ def try_poses(problem, basis, level, judge, path, transform, candidates, progres
     pick = [int(j) for j in np.argsort(scores[1:])[:POSE_FINALISTS] if scores[1 + j] <= POSE_TIE * scores[0]]
     if not pick:
         return path, transform, 0.0
-    share = stage_budget() / (level.steps * level.max_iter + stage_budget())
+    budget = stage_budget()
+    share = budget / (level.steps * level.max_iter + budget)
     lo, hi = progress
-    unit = (hi - lo) * share / stage_budget()  # progress per step x iteration of the short solves
+    unit = (hi - lo) * share / budget  # progress per step x iteration of the short solves
     first = min(POSE_PICK_ITER, POSE_ITER)
     short = replace(level, max_iter=first, steps=POSE_STEPS)
     span = POSE_STEPS * first * unit
@@ -111,7 +112,8 @@ def try_poses(problem, basis, level, judge, path, transform, candidates, progres
     if POSE_ITER > first:  # only the best one runs the rest of the short solve
         rest = replace(short, max_iter=POSE_ITER - first)
         start = lo + len(firsts) * span
-        path, transform, _ = problem.solve_level(rest, path, transform, (start, start + POSE_STEPS * rest.max_iter * unit),
+        end = start + POSE_STEPS * rest.max_iter * unit
+        path, transform, _ = problem.solve_level(rest, path, transform, (start, end),
                                                  f"{message} (pose {best + 1}/{len(firsts)} going on)", kernel,
                                                  orient=True, bin_cell=POSE_BIN_CELL)
     return path, transform, share
