@@ -3,7 +3,8 @@
 Pure Python on torch/scipy/numpy (pykeops where it pays); never imports bpy. The
 modules, lowest first (each imports only modules above it in this list):
 
-errors, progress, optimize        exceptions; progress/cancel callbacks; L-BFGS
+errors, progress, threads         exceptions; progress/cancel callbacks; BLAS pools held to one thread
+optimize                          L-BFGS
 geometry, transforms, mesh        discrete differential geometry; the similarity type; mesh I/O
 h2_metric, varifold, evaluation   the H2 metric and path energy; the data term; metrics
 latent, basis_io                  Basis, decoder, latent metric, projection; basis files

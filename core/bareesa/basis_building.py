@@ -12,6 +12,7 @@ from .h2_metric import H2Weights, assembled_metric_matrix, path_energy
 from .latent import PAPER_BODY_SCHEDULE, Basis
 from .optimize import minimize_lbfgs
 from .progress import Monitor
+from .threads import with_one_blas_thread
 
 RANK_RTOL = 1e-6
 
@@ -61,6 +62,7 @@ def sequence_tangents(sequences):
     return np.concatenate(diffs)
 
 
+@with_one_blas_thread
 def build_basis(template, faces, groups, components, weights="body", scale=None, name="basis",
                 units="", schedule=PAPER_BODY_SCHEDULE, provenance=None, elastic=(), elastic_steps=5,
                 callback=None, cancel=None, landmarks=None):
@@ -150,6 +152,7 @@ def vertex_geodesic(verts0, verts1, faces, weights, steps=5, max_iter=300, callb
     return path
 
 
+@with_one_blas_thread
 def elastic_tangents(sequences, faces, weights, steps=5, callback=None, cancel=None):
     """Tangent vectors of H2 geodesics between consecutive meshes of each sequence.
 

@@ -16,6 +16,7 @@ from .geometry import face_areas
 from .latent import decode, interior_whitening, latent_path_energy, whitening
 from .optimize import minimize_lbfgs
 from .progress import Monitor
+from .threads import with_one_blas_thread
 
 
 @dataclass
@@ -78,6 +79,7 @@ def midpoint_metric(template, faces, fields, alpha0, alpha1, weights):
     return gram.double().cpu().numpy()
 
 
+@with_one_blas_thread
 def geodesic(template, faces, fields, alpha0, alpha1, weights, steps=10, max_iter=500, init=None,
              metric=None, callback=None, cancel=None, plateau=None):
     """Solve the latent boundary value problem between two codes.

@@ -5,6 +5,7 @@ import scipy.optimize
 import torch
 
 from .errors import SolveDiverged
+from .threads import with_one_blas_thread
 
 #: Past steps L-BFGS keeps by default (scipy's ``maxcor``)
 LBFGS_MEMORY = 20
@@ -14,6 +15,7 @@ class _Stalled(Exception):
     """Raised inside the objective to end a solve whose line searches no longer lower it."""
 
 
+@with_one_blas_thread
 def minimize_lbfgs(objective, x0, monitor=None, max_iter=200, progress=(0.0, 1.0), message="",
                    gtol=1e-10, ftol=1e-12, plateau=None, preview=None, stall=None, memory=LBFGS_MEMORY):
     """Minimise ``objective(x: torch float64 tensor) -> scalar tensor`` from x0 (n,) numpy.

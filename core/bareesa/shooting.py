@@ -36,6 +36,7 @@ from .h2_metric import H2Weights, path_energy
 from .h2_metric import assembled_metric_matrix as jacobian_metric
 from .latent import decode
 from .progress import Monitor
+from .threads import with_one_blas_thread
 
 #: A step is accepted when the quasi-Newton correction, in the metric norm, is below
 #: STEP_TOL x the step length in the same norm (rounding noise sits near 1e-11).
@@ -389,6 +390,7 @@ def _march(stepper, start, n_frames, substeps, midpoint, monitor, max_substeps, 
     return np.array(frames).reshape(n_frames, -1), report
 
 
+@with_one_blas_thread
 def extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new, callback=None, cancel=None,
                 tol=STEP_TOL, substeps=1, anchor=False, accept_tol=ACCEPT_TOL, max_substeps=MAX_SUBSTEPS,
                 speed_tol=SPEED_TOL, with_report=False, frame_check=None):
@@ -450,6 +452,7 @@ def anchor_extrapolation(template, fields, path):
     return anchor_path(template, fields, path, line, fixed=(0, 1))
 
 
+@with_one_blas_thread
 def shoot(template, faces, fields, alpha0, velocity, weights, steps=10, callback=None, cancel=None,
           with_report=False, frame_check=None):
     """exp map: geodesic from alpha0 with initial velocity over unit time, steps >= 1: -> (steps + 1, P)

@@ -13,6 +13,7 @@ from .geodesics import geodesic
 from .latent import project_to_basis
 from .progress import Monitor
 from .shooting import initial_velocity, shoot
+from .threads import with_one_blas_thread
 
 
 def transfer_motion(frame_codes, identity_code, identity_slice):
@@ -26,6 +27,7 @@ def transfer_motion(frame_codes, identity_code, identity_slice):
     return frames
 
 
+@with_one_blas_thread
 def log_map(template, faces, fields, codes, weights, steps=6, callback=None, cancel=None):
     """Initial velocities at the template (code 0) of the geodesics to each code: (M, P) -> (M, P)."""
     codes = np.atleast_2d(np.asarray(codes, dtype=np.float64))
@@ -82,6 +84,7 @@ def sample_velocities(distribution, groups, n, seed=0):
     return out
 
 
+@with_one_blas_thread
 def sample_codes(template, faces, fields, distribution, groups, weights, n, seed=0, steps=8,
                  callback=None, cancel=None):
     """Random shapes: sample initial velocities, shoot from the template: -> codes (n, P)."""

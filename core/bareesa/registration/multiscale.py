@@ -37,6 +37,7 @@ from ..h2_metric import H2Weights
 from ..latent import Level
 from ..mesh import face_geometry, validate_mesh
 from ..progress import Monitor
+from ..threads import with_one_blas_thread
 from ..transforms import Similarity
 from ..varifold import KERNELS
 from .poses import check_pose_candidates, stage_budget, try_poses
@@ -245,6 +246,7 @@ def is_poor_fit(basis, residual):
     return None if threshold is None else bool(residual > threshold)
 
 
+@with_one_blas_thread
 def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, landmarks=None,
              landmark_weight=1.0, scan_face_weights=None, metric=None, kernel="auto", backend="auto",
              binning="auto", refine_transform=None, init_code=None, pose_candidates="auto", callback=None, cancel=None,

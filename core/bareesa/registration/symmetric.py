@@ -13,6 +13,7 @@ from ..h2_metric import H2Weights, path_energy
 from ..latent import decode, interior_whitening, whitening
 from ..optimize import minimize_lbfgs
 from ..progress import Monitor
+from ..threads import with_one_blas_thread
 from ..transforms import Similarity
 from ..varifold import VarifoldLoss, is_oriented
 from .multiscale import check_face_weights, check_landmarks, level_kernels, register
@@ -53,6 +54,7 @@ class Matching:
         return np.stack([self.frame_transform(float(t)).invert(v) for t, v in zip(times, frames)])
 
 
+@with_one_blas_thread
 def symmetric_match(basis, scan0, scan1, steps=10, schedule=None, weights=None, prealign=True, kernel="auto",
                     face_weights=(None, None), landmarks=(None, None), landmark_weight=1.0, callback=None,
                     cancel=None, dtype=torch.float64, device="cpu"):

@@ -1,0 +1,77 @@
+"""numpy's and scipy's BLAS pools are held to one thread while the solver runs, and restored after."""
+
+import numpy as np
+import pytest
+from threadpoolctl import threadpool_info, threadpool_limits
+
+from bareesa import geodesics, registration, shooting, synthetic
+from bareesa.errors import SolveCancelled
+from bareesa.optimize import minimize_lbfgs
+from bareesa.progress import CancelToken
+from bareesa.threads import one_blas_thread
+from tests.test_latent import small_basis
+
+
+def blas_threads():
+    """The thread counts of the BLAS libraries loaded in this process (numpy's, scipy's)."""
+    return sorted({lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"})
+
+
+@pytest.fixture
+def two_blas_threads():
+    """BLAS pools at two threads around the test (one-core machines included), so that one can be seen."""
+    if not blas_threads():
+        pytest.skip("no BLAS library that threadpoolctl can see is loaded")
+    with threadpool_limits(limits=2, user_api="blas"):
+        assert blas_threads() == [2]
+        yield
+
+
+def test_one_blas_thread_holds_the_pools_to_one_and_restores_them(two_blas_threads):
+    with one_blas_thread():
+        assert blas_threads() == [1]
+    assert blas_threads() == [2]
+
+
+def test_every_l_bfgs_evaluation_runs_with_one_blas_thread(two_blas_threads):
+    seen = []
+
+    def objective(x):
+        seen.append(blas_threads())
+        return ((x - 1.0) ** 2).sum()
+
+    x, _, _ = minimize_lbfgs(objective, np.zeros(5))
+    assert np.allclose(x, 1.0) and seen and all(s == [1] for s in seen)
+    assert blas_threads() == [2]
+
+
+def test_registration_geodesic_and_shooting_run_with_one_blas_thread_and_restore_it(two_blas_threads):
+    seen = []
+    record = lambda event: seen.append(blas_threads())  # noqa: E731
+    basis, surface = synthetic.smooth_sphere_basis(subdivisions=2, n_fields=6, seed=0)
+    u, faces = synthetic.resampled_sphere(2, seed=3)
+    scan = surface(u, 0.5 * np.random.default_rng(1).normal(size=6))
+    registration.register(basis, scan, faces, backend="dense", callback=record)
+    b = small_basis()
+    t, f, h = b.tensors()
+    a0, a1 = np.zeros(4), np.array([1.0, -0.5, 0.5, 0.5])
+    geodesics.geodesic(t, f, h, a0, a1, b.weights, steps=4, callback=record)
+    shooting.shoot(t, f, h, a0, a1, b.weights, steps=3, callback=record)
+    assert len(seen) > 10 and all(s == [1] for s in seen)
+    assert blas_threads() == [2]
+
+
+def test_a_solve_cancelled_midway_restores_the_blas_pools(two_blas_threads):
+    b = small_basis()
+    t, f, h = b.tensors()
+    token, seen = CancelToken(), []
+
+    def cancel_at_first_report(event):
+        seen.append(blas_threads())
+        token.cancel()
+
+    with pytest.raises(SolveCancelled):
+        geodesics.geodesic(t, f, h, np.zeros(4), np.ones(4), b.weights, steps=4, callback=cancel_at_first_report,
+                           cancel=token)
+    assert seen and all(s == [1] for s in seen)
+    assert blas_threads() == [2]
