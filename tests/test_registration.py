@@ -13,8 +13,9 @@ from bareesa.registration import poses
 from bareesa.registration import problem as level_problem
 from bareesa.transforms import Similarity, axis_angle_rotation
 from bareesa.errors import InputError, MeshError, SolveCancelled
+from bareesa.h2_metric import H2Weights
 from bareesa.latent import Level
-from bareesa.progress import CancelToken
+from bareesa.progress import CancelToken, Monitor
 
 SCALE, SHIFT = 3.7, np.array([1.0, -2.0, 0.5])
 
@@ -567,3 +568,26 @@ def test_a_level_binned_by_its_schedule_is_binned_unless_the_caller_says_otherwi
     for bad in ("yes", 1):
         with pytest.raises(InputError, match="binned"):
             Level(0.1, 1e3, 2, 10, binned=bad)
+
+
+def test_a_binned_level_uses_its_own_cell_size_unless_the_caller_gives_one(space, monkeypatch):
+    """Level.bin_cell sets a binned level's cells (units of sigma; None: varifold.BIN_CELL); a caller's
+    bin_cell (the pose stage's) still wins."""
+    basis = space["basis"]
+    fine = replace(basis.schedule[-1], max_iter=3, binned=True)
+    seen = []
+    real = level_problem.RegistrationProblem.level_loss
+    monkeypatch.setattr(level_problem.RegistrationProblem, "level_loss",
+                        lambda self, *a, **k: (seen.append(a[5]), real(self, *a, **k))[1])
+    problem = level_problem.RegistrationProblem(basis, space["scan"], np.asarray(space["faces"]), None, None, 1.0,
+                                                H2Weights.parse(basis.shape_metric), "dense",
+                                                "auto", False, torch.float64, "cpu",
+                                                Monitor("test", None, None))
+    path = np.zeros((2, basis.n_fields))
+    reports = [problem.solve_level(lv, path, Similarity(), (0, 1), "level", bin_cell=cell)[2]
+               for lv, cell in ((fine, None), (replace(fine, bin_cell=0.9), None), (replace(fine, bin_cell=0.9), 1.3))]
+    assert seen == [level_problem.BIN_CELL, 0.9, 1.3] and level_problem.BIN_CELL not in (0.9, 1.3)
+    assert all(r["binned"] for r in reports) and len({r["varifold"] for r in reports}) == 3
+    for bad in (0.0, -0.5, 3.0):
+        with pytest.raises(InputError, match="bin_cell"):
+            Level(0.1, 1e3, 2, 10, bin_cell=bad)

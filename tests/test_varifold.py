@@ -350,3 +350,16 @@ def test_keops_can_be_turned_off_from_the_environment(monkeypatch):
     monkeypatch.setenv(V.kernels.NO_KEOPS_ENV, "1")
     assert not V.keops_available()
     assert V.kernels.choose_backend(100, 100, SIGMA, 1.0, "cuda") == "dense"
+
+
+def test_auto_truncates_a_short_cutoff_from_fewer_pairs_with_keops_only(monkeypatch):
+    """With pykeops, "auto" truncates a cutoff below a quarter of the extent from TRUNCATE_MIN_PAIRS
+    (max(n)^2) on, where dense was chosen up to DENSE_MAX_PAIRS; without it dense stays the choice there."""
+    n = int((V.kernels.TRUNCATE_MIN_PAIRS ** 0.5 + V.kernels.DENSE_MAX_PAIRS ** 0.5) / 2)  # between the two
+    monkeypatch.setattr(V.kernels, "_KEOPS", True)
+    assert V.kernels.choose_backend(n, n, 0.01, 2.0, "cpu") == "truncated"
+    assert V.kernels.choose_backend(n, n, 1.0, 2.0, "cpu") == "dense"  # a cutoff as long as the body
+    small = int(V.kernels.TRUNCATE_MIN_PAIRS ** 0.5) - 1
+    assert V.kernels.choose_backend(small, small, 0.01, 2.0, "cpu") == "dense"
+    monkeypatch.setattr(V.kernels, "_KEOPS", False)
+    assert V.kernels.choose_backend(n, n, 0.01, 2.0, "cpu") == "dense"

@@ -33,7 +33,8 @@ class Level:
     iterations, or when its objective fell by less than ``plateau`` (relative) over the last few
     iterations (None: ``registration.problem.LEVEL_PLATEAU``'s); ``binned``: whether the level's
     varifold is summed over cells when ``register``'s binning is "auto" (None: its pair-count rule,
-    ``registration.problem.BIN_GAIN``).
+    ``registration.problem.BIN_GAIN``); ``bin_cell``: the size of those cells in units of sigma (None:
+    ``varifold.BIN_CELL``).
     """
 
     sigma: float
@@ -42,6 +43,7 @@ class Level:
     max_iter: int = 200
     plateau: float | None = None
     binned: bool | None = None
+    bin_cell: float | None = None
 
     def __post_init__(self):
         if not (self.sigma > 0 and self.weight > 0 and self.steps >= 1 and self.max_iter >= 1):
@@ -50,6 +52,8 @@ class Level:
             raise InputError(f"invalid schedule level {self}: plateau is a relative fall between 0 and 1")
         if not (self.binned is None or isinstance(self.binned, bool)):
             raise InputError(f"invalid schedule level {self}: binned is true, false or null")
+        if self.bin_cell is not None and not 0 < self.bin_cell <= 2:
+            raise InputError(f"invalid schedule level {self}: bin_cell is a cell size in units of sigma, in (0, 2]")
 
 
 #: The paper's body schedule (sigma 0.4 -> 0.1 -> 0.025 m on ~1.7 m bodies), relative to height.

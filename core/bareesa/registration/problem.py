@@ -333,14 +333,15 @@ class RegistrationProblem:
                             target_cell=None if cell is None else cell * sigma), False
 
     def solve_level(self, level, path, transform, progress, message, kernel="binet", orient=False,
-                    bin_cell=BIN_CELL):
+                    bin_cell=None):
         """Minimise one level from path (T0+1, P) and the alignment -> (path (T+1, P), alignment, report).
 
         kernel: the varifold's (a name of ``bareesa.varifold.KERNELS``, or names joined by "+": the sum
         of their varifolds); orient: with an oriented kernel, first turn the scan's faces like the fit
         so far (``oriented_scan_faces``), else use them as given; bin_cell: the cells of a binned level,
-        in units of sigma (``level_loss``)."""
+        in units of sigma (``level_loss``; None: the level's own ``bin_cell``, else BIN_CELL)."""
         t0 = time.perf_counter()
+        bin_cell = next(c for c in (bin_cell, level.bin_cell, BIN_CELL) if c is not None)
         self.monitor.check()
         dtype, device, p_dim, steps = self.dtype, self.device, self.n_fields, level.steps
         sigma = level.sigma * self.scale

@@ -67,9 +67,9 @@ smooth surface the ignored mass of an inner product is ~tol times the inner prod
 the self and cross terms' errors largely cancel in d^2 when q and q' are close.
 
 ``backend="auto"`` (see ``choose_backend``): on CUDA, "keops" (or "dense" without pykeops);
-on CPU, "dense" while max(n_source, n_target)^2 < 2e7 face (or cell) pairs, else "truncated"
-when the cutoff is below a quarter of the bounding-box diagonal of both meshes, else "keops"
-(or "dense" without pykeops).
+on CPU, "truncated" when the cutoff is below a quarter of the bounding-box diagonal of both meshes,
+pykeops imports and max(n_source, n_target)^2 >= 1.5e6 face (or cell) pairs; else "dense" while that
+is < 2e7, else "truncated" when the cutoff is short, else "keops" (or "dense" without pykeops).
 """
 
 from . import kernels
