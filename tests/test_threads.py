@@ -1,5 +1,7 @@
 """numpy's and scipy's BLAS pools are held to one thread while the solver runs, and restored after."""
 
+import threading
+
 import numpy as np
 import pytest
 from threadpoolctl import threadpool_info, threadpool_limits
@@ -8,6 +10,7 @@ from bareesa import geodesics, registration, shooting, synthetic
 from bareesa.errors import SolveCancelled
 from bareesa.optimize import minimize_lbfgs
 from bareesa.progress import CancelToken
+from bareesa import threads
 from bareesa.threads import one_blas_thread
 from tests.test_latent import small_basis
 
@@ -75,3 +78,46 @@ def test_a_solve_cancelled_midway_restores_the_blas_pools(two_blas_threads):
                            cancel=token)
     assert seen and all(s == [1] for s in seen)
     assert blas_threads() == [2]
+
+
+def test_solves_side_by_side_in_threads_share_the_limit_and_the_last_one_out_restores_it(monkeypatch):
+    """As the add-on runs two jobs at once: the first solve out must not lift the limit under the other,
+    and the last one out puts back what was there before the first came in. (Recorded on a stand-in for
+    threadpoolctl: OpenBLAS stops reporting limits set from other threads once the main one has set one.)"""
+    log = []
+
+    class Limit:
+        def __init__(self, limits, user_api):
+            log.append(("set", limits, user_api))
+
+        def restore_original_limits(self):
+            log.append(("restored",))
+
+    monkeypatch.setattr(threads, "threadpool_limits", Limit)
+    first_in, second_in, first_out, second_done = (threading.Event() for _ in range(4))
+    seen = {}
+
+    def first():
+        with one_blas_thread():
+            first_in.set()
+            second_in.wait(10)
+        first_out.set()
+
+    def second():
+        first_in.wait(10)
+        with one_blas_thread():
+            second_in.set()
+            first_out.wait(10)
+            seen["log after the first left"] = list(log)
+        second_done.set()
+
+    workers = [threading.Thread(target=first), threading.Thread(target=second)]
+    for t in workers:
+        t.start()
+    for t in workers:
+        t.join(20)
+    assert second_done.is_set() and seen["log after the first left"] == [("set", 1, "blas")]
+    assert log == [("set", 1, "blas"), ("restored",)]
+    with one_blas_thread():  # and the next solve sets it again
+        pass
+    assert log[2:] == [("set", 1, "blas"), ("restored",)]

@@ -9,14 +9,34 @@ costs it nothing. threadpoolctl sets and restores the limits; torch's pool (its 
 MKL inside it) is not touched.
 """
 
+import threading
+from contextlib import contextmanager
 from functools import wraps
 
 from threadpoolctl import threadpool_limits
 
+#: The BLAS limit is the process's, and the add-on runs solves in threads side by side: the first solve
+#: in sets it, the last one out restores what was there before it (``_held`` counts the solves inside).
+_lock = threading.Lock()
+_held = {"depth": 0, "limiter": None}
 
+
+@contextmanager
 def one_blas_thread():
-    """Context manager: numpy's and scipy's BLAS libraries on one thread inside, as before after."""
-    return threadpool_limits(limits=1, user_api="blas")
+    """Context manager: numpy's and scipy's BLAS libraries on one thread inside, as before after the last
+    solve (of any thread) inside has left; nested and concurrent uses share one limit."""
+    with _lock:
+        if _held["depth"] == 0:
+            _held["limiter"] = threadpool_limits(limits=1, user_api="blas")
+        _held["depth"] += 1
+    try:
+        yield
+    finally:
+        with _lock:
+            _held["depth"] -= 1
+            if _held["depth"] == 0:
+                _held["limiter"].restore_original_limits()
+                _held["limiter"] = None
 
 
 def with_one_blas_thread(func):
