@@ -121,3 +121,37 @@ def test_solves_side_by_side_in_threads_share_the_limit_and_the_last_one_out_res
     with one_blas_thread():  # and the next solve sets it again
         pass
     assert log[2:] == [("set", 1, "blas"), ("restored",)]
+
+
+def test_a_solve_in_a_worker_thread_is_limited_also_after_one_on_the_main_thread(two_blas_threads):
+    """As in Blender: a solve on the main thread (a script), then one in a job's thread, then one in a
+    thread while another thread's solve is still inside; each sees one BLAS thread, and two after."""
+    seen = {}
+
+    def solve(tag):
+        with one_blas_thread():
+            seen[tag] = blas_threads()
+
+    solve("main")
+    worker = threading.Thread(target=solve, args=("worker",))
+    worker.start()
+    worker.join(20)
+    assert blas_threads() == [2]
+    inside, leave = threading.Event(), threading.Event()
+
+    def long_solve():
+        with one_blas_thread():
+            inside.set()
+            leave.wait(10)
+            seen["long, after the other left"] = blas_threads()
+
+    first = threading.Thread(target=long_solve)
+    first.start()
+    inside.wait(10)
+    second = threading.Thread(target=solve, args=("beside it",))
+    second.start()
+    second.join(20)
+    leave.set()
+    first.join(20)
+    assert seen == {"main": [1], "worker": [1], "beside it": [1], "long, after the other left": [1]}
+    assert blas_threads() == [2]

@@ -13,12 +13,20 @@ import threading
 from contextlib import contextmanager
 from functools import wraps
 
-from threadpoolctl import threadpool_limits
+from threadpoolctl import OpenBLASController, threadpool_limits
 
 #: The BLAS limit is the process's, and the add-on runs solves in threads side by side: the first solve
 #: in sets it, the last one out restores what was there before it (``_held`` counts the solves inside).
 _lock = threading.Lock()
 _held = {"depth": 0, "limiter": None}
+
+
+def _free_openblas():
+    """Let any thread set OpenBLAS' limits next: threadpoolctl lets only the thread that set one last
+    (until it leaves a ``with threadpool_limits``), and a limit set and restored outside a ``with`` kept the
+    main thread in control, so that a worker thread's later limit did nothing (a registration 37 s instead
+    of 18 s, bench/README)."""
+    OpenBLASController.clear_controlling_thread(force=True)
 
 
 @contextmanager
@@ -27,7 +35,9 @@ def one_blas_thread():
     solve (of any thread) inside has left; nested and concurrent uses share one limit."""
     with _lock:
         if _held["depth"] == 0:
+            _free_openblas()
             _held["limiter"] = threadpool_limits(limits=1, user_api="blas")
+            _free_openblas()
         _held["depth"] += 1
     try:
         yield
@@ -35,8 +45,10 @@ def one_blas_thread():
         with _lock:
             _held["depth"] -= 1
             if _held["depth"] == 0:
+                _free_openblas()
                 _held["limiter"].restore_original_limits()
                 _held["limiter"] = None
+                _free_openblas()
 
 
 def with_one_blas_thread(func):
