@@ -6,11 +6,10 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from bareesa import geodesics, registration, shooting, synthetic
+from bareesa import geodesics, registration, shooting, synthetic, threads
 from bareesa.errors import SolveCancelled
 from bareesa.optimize import minimize_lbfgs
 from bareesa.progress import CancelToken
-from bareesa import threads
 from bareesa.threads import one_blas_thread
 from tests.test_latent import small_basis
 
