@@ -24,8 +24,8 @@ _held = {"depth": 0, "limiter": None}
 def _free_openblas():
     """Let any thread set OpenBLAS' limits next: threadpoolctl lets only the thread that set one last
     (until it leaves a ``with threadpool_limits``), and a limit set and restored outside a ``with`` kept the
-    main thread in control, so that a worker thread's later limit did nothing (a registration 37 s instead
-    of 18 s, bench/README)."""
+    main thread in control, so that a worker thread's later limit did nothing
+    (``test_a_solve_in_a_worker_thread_is_limited_also_after_one_on_the_main_thread``)."""
     OpenBLASController.clear_controlling_thread(force=True)
 
 

@@ -19,8 +19,8 @@ DENSE_MAX_PAIRS = 2e7
 #: ... but with pykeops a cutoff below a quarter of the extent is truncated from this many pairs on: a
 #: `human` middle level (cells 0.6 sigma, 2.5k x 3.1k cells, 1.4 of 8.8 million pairs within the
 #: cutoff) took 36 ms an evaluation truncated against 113 ms dense, its second level (1.3k x 1.4k cells)
-#: 35 against 42 ms; at 0.4 of these pairs (0.6k cells) dense was faster, 11 against 15 ms (bench/README,
-#: 2026-12-06). The torch fallback of the truncated sums is not faster than dense at these sizes.
+#: 35 against 42 ms; on cells of 0.6 sigma (0.72 million pairs in all) dense was faster there, 11 against
+#: 15 ms (bench/README, 2026-12-06). The torch fallback of the truncated sums is not faster than dense at these sizes.
 TRUNCATE_MIN_PAIRS = 1.5e6
 
 #: Whether pykeops imports (None: not tried yet); set it to False to force the torch code paths.
