@@ -197,7 +197,7 @@ def _corner_components(x, corners, n_faces):
     return [tuple(per_axis[axis][k] for axis in range(3)) for k in range(3)]
 
 
-def _quadratic(verts, faces, h, w):
+def _quadratic(verts, faces, h, w, compute=None):
     """G_q(h, h) for verts, h (..., N, 3) -> (...), in closed form per face.
 
     The form of ``_features`` written out with 2 x 2 algebra on per-component
@@ -208,20 +208,33 @@ def _quadratic(verts, faces, h, w):
       xi = s J with s = e2.d1 - e1.d2, so tr(g^-1 xi g^-1 xi^T) = 2 s^2 / D,
       |dn|^2 = (|dc|^2 - (c.dc)^2 / D) / D with dc = d1 x e2 + e1 x d2,
       cot of the angle at a corner = (dot of its two edges) / sqrt(D).
+    compute: the dtype of the per-face algebra (default verts'): the edges are taken in verts' dtype
+    and the sums accumulated in it. Differentiated by ``_quadratic_gradient``, written out.
     """
+    compute = verts.dtype if compute is None else compute
+    if torch.is_grad_enabled() and (verts.requires_grad or h.requires_grad):
+        verts, h = torch.broadcast_tensors(verts, h)
+        return _QuadraticForm.apply(verts, h, faces, w, compute)
+    return _quadratic_parts(verts, faces, h, w, compute)[0]
+
+
+def _quadratic_parts(verts, faces, h, w, compute):
+    """``_quadratic``'s value (...) and the per-face and per-vertex parts its gradient reuses (a dict)."""
     corners = faces.T.reshape(-1)  # (3F,) corner-major
     n_faces = faces.shape[0]
     p = _corner_components(verts, corners, n_faces)
     v = _corner_components(h, corners, n_faces)
-    sub = lambda x, y: tuple(a - b for a, b in zip(x, y))  # noqa: E731
+    sub = lambda x, y: tuple((a - b).to(compute) for a, b in zip(x, y))  # noqa: E731
     e1, e2, d1, d2 = sub(p[1], p[0]), sub(p[2], p[0]), sub(v[1], v[0]), sub(v[2], v[0])
     c = _cross3(e1, e2)
     det = _dot3(c, c)
-    valid = det > torch.finfo(verts.dtype).tiny * 1e6
+    valid = det > torch.finfo(compute).tiny * 1e6
     det = torch.where(valid, det, torch.ones_like(det))
     root = torch.sqrt(det)
     area = torch.where(valid, root / 2, torch.zeros_like(det))  # (..., F)
     g11, g12, g22 = _dot3(e1, e1), _dot3(e1, e2), _dot3(e2, e2)
+    parts = dict(e1=e1, e2=e2, d1=d1, d2=d2, c=c, det=det, valid=valid, root=root, area=area,
+                 g11=g11, g12=g12, g22=g22)
     per_face = torch.zeros_like(det)
     if w.a1 or w.b1 or w.d1:
         m11, m12, m21, m22 = _dot3(e1, d1), _dot3(e1, d2), _dot3(e2, d1), _dot3(e2, d2)
@@ -231,28 +244,154 @@ def _quadratic(verts, faces, h, w):
         beta = (w.b1 - w.a1) / 8
         per_face = per_face + (w.a1 * (a * a + 2 * b * c_ + d * d) + beta * (a + d) ** 2) / (det * det)
         per_face = per_face + w.d1 * 2 * (m21 - m12) ** 2 / det
+        parts.update(m12=m12, m21=m21, s11=s11, s12=s12, s22=s22, a=a, b=b, c_=c_, d=d)
     if w.c1:
         dc = tuple(x + y for x, y in zip(_cross3(d1, e2), _cross3(e1, d2)))
         per_face = per_face + w.c1 * (_dot3(dc, dc) - _dot3(c, dc) ** 2 / det) / det
-    total = (area * per_face).sum(-1)
+        parts.update(dc=dc)
+    parts.update(per_face=per_face)
+    total = (area * per_face).sum(-1, dtype=verts.dtype)
     if w.a0 or w.a2:
         vertex_area = area.new_zeros(area.shape[:-1] + verts.shape[-2:-1]).index_add(
             -1, corners, (area / 3).repeat((1,) * (area.dim() - 1) + (3,)))
+        parts.update(vertex_area=vertex_area)
     if w.a0:
-        total = total + w.a0 * (vertex_area * _dot(h, h)).sum(-1)
+        total = total + w.a0 * (vertex_area.to(h.dtype) * _dot(h, h)).sum(-1)
     if w.a2:
         inv_root = torch.where(valid, 1 / root, torch.zeros_like(root))
         cot = (g12 * inv_root, (g11 - g12) * inv_root, (g22 - g12) * inv_root)  # angle at corner 0, 1, 2
-        # (L h) at corner j: cot_{j+2} (h_j - h_{j+1}) + cot_{j+1} (h_j - h_{j+2}), summed over faces
-        lap = torch.stack([torch.cat([cot[(j + 2) % 3] * (v[j][axis] - v[(j + 1) % 3][axis])
-                                      + cot[(j + 1) % 3] * (v[j][axis] - v[(j + 2) % 3][axis]) for j in range(3)], -1)
-                           for axis in range(3)], -2)  # (..., 3, 3F) corner-major like ``corners``
+        # (L h) at corner j: cot_{j+2} (h_j - h_{j+1}) + cot_{j+1} (h_j - h_{j+2}), summed over faces; in
+        # the edges d1 = h_1 - h_0, d2 = h_2 - h_0:
+        lap = torch.stack([torch.cat([-cot[2] * d1[k] - cot[1] * d2[k],
+                                      cot[0] * (d1[k] - d2[k]) + cot[2] * d1[k],
+                                      cot[1] * d2[k] + cot[0] * (d2[k] - d1[k])], -1)
+                           for k in range(3)], -2)  # (..., 3, 3F) corner-major like ``corners``
         lap = lap.new_zeros(lap.shape[:-1] + h.shape[-2:-1]).index_add(-1, corners, lap)  # (..., 3, N)
         inv = torch.where(vertex_area > 0, 1 / (4 * torch.where(vertex_area > 0, vertex_area,
                                                                     torch.ones_like(vertex_area))),
                           torch.zeros_like(vertex_area))
-        total = total + w.a2 * (inv * (lap * lap).sum(-2)).sum(-1)
-    return total
+        total = total + w.a2 * (inv * (lap * lap).sum(-2)).sum(-1, dtype=verts.dtype)
+        parts.update(inv_root=inv_root, cot=cot, lap=lap, inv=inv)
+    return total, parts
+
+
+def _quadratic_gradient(parts, h, faces, w, grad):
+    """The gradient of ``_quadratic`` in verts and h (..., N, 3) from its parts, times grad (...).
+
+    Reverse mode written out on the per-component (..., F) arrays of ``_quadratic_parts``: the
+    vertex terms give the gradients of the vertex areas and of the Laplacian, which flow back to
+    the faces' areas and cotangents; every per-face quantity then back to the edges e1, e2, d1, d2
+    (the cotangent weights and the areas through the face metric and c), and the edges to the
+    vertices."""
+    P = parts
+    n_faces = faces.shape[0]
+    e1, e2, d1, d2, c, det, root, area = (P[k] for k in ("e1", "e2", "d1", "d2", "c", "det", "root", "area"))
+    zero = torch.zeros_like(det)
+    g_area = P["per_face"]
+    g_per_face = area
+    g_det, g_root, g11_g, g12_g, g22_g = zero, zero, zero, zero, zero
+    ge1, ge2, gd1, gd2 = [zero] * 3, [zero] * 3, [zero] * 3, [zero] * 3
+    add3 = lambda x, y, s=1.0: tuple(a + s * b for a, b in zip(x, y))  # noqa: E731
+    scale3 = lambda x, s: tuple(a * s for a in x)  # noqa: E731
+    corners = faces.T.reshape(-1)
+    gather = lambda t: t[..., corners].unflatten(-1, (3, n_faces))  # (..., N) -> (..., 3, F)  # noqa: E731
+    g_h = None
+    if w.a0 or w.a2:
+        g_va = w.a0 * _dot(h, h).to(det.dtype) if w.a0 else 0.0
+        if w.a0:
+            g_h = 2 * w.a0 * P["vertex_area"].to(h.dtype)[..., None] * h
+        if w.a2:
+            inv, lap, cot = P["inv"], P["lap"], P["cot"]
+            g_va = g_va - 4 * w.a2 * inv * inv * (lap * lap).sum(-2)
+            g_lap = gather(2 * w.a2 * inv[..., None, :] * lap)  # (..., 3 axes, 3 corners, F)
+            # the edge opposite corner k joins k+1 and k+2 with weight cot_k: w_k to corner k+1, -w_k to k+2
+            diff = [g_lap[..., :, (k + 1) % 3, :] - g_lap[..., :, (k + 2) % 3, :] for k in range(3)]  # (..., 3, F)
+            edge = [tuple(x - y for x, y in zip(d1, d2)), d2, scale3(d1, -1.0)]  # h_{k+1} - h_{k+2}
+            g_cot = [sum(diff[k][..., axis, :] * edge[k][axis] for axis in range(3)) for k in range(3)]
+            flow = [diff[k] * cot[k][..., None, :] for k in range(3)]
+            gd1 = add3(gd1, (flow[0] - flow[2]).unbind(-2))  # corner 1 gets w_0 - w_2, corner 2 w_1 - w_0
+            gd2 = add3(gd2, (flow[1] - flow[0]).unbind(-2))
+            inv_root = P["inv_root"]
+            g11_g = g11_g + g_cot[1] * inv_root
+            g22_g = g22_g + g_cot[2] * inv_root
+            g12_g = g12_g + (g_cot[0] - g_cot[1] - g_cot[2]) * inv_root
+            g_root = g_root - (g_cot[0] * cot[0] + g_cot[1] * cot[1] + g_cot[2] * cot[2]) * inv_root
+        g_area = g_area + gather(g_va).sum(-2) / 3
+    g_root = g_root + torch.where(P["valid"], g_area / 2, zero)
+    if w.a1 or w.b1 or w.d1:
+        m12, m21, s11, s12, s22 = (P[k] for k in ("m12", "m21", "s11", "s12", "s22"))
+        a, b, c_, d = P["a"], P["b"], P["c_"], P["d"]
+        g11, g12, g22 = P["g11"], P["g12"], P["g22"]
+        beta = (w.b1 - w.a1) / 8
+        det2 = det * det
+        q = g_per_face / det2
+        trace = 2 * beta * (a + d)
+        ga, gd = q * (2 * w.a1 * a + trace), q * (2 * w.a1 * d + trace)
+        gb, gc_ = q * (2 * w.a1 * c_), q * (2 * w.a1 * b)
+        g_det = g_det - 2 * g_per_face * (w.a1 * (a * a + 2 * b * c_ + d * d) + beta * (a + d) ** 2) / (det2 * det)
+        s = m21 - m12
+        g_s = g_per_face * 4 * w.d1 * s / det
+        g_det = g_det - g_per_face * 2 * w.d1 * s * s / det2
+        gs11, gs22 = ga * g22 - gc_ * g12, gd * g11 - gb * g12
+        gs12 = gb * g22 + gc_ * g11 - (ga + gd) * g12
+        g22_g = g22_g + ga * s11 + gb * s12
+        g11_g = g11_g + gc_ * s12 + gd * s22
+        g12_g = g12_g - ga * s12 - gb * s22 - gc_ * s11 - gd * s12
+        gm11, gm22 = 2 * gs11, 2 * gs22
+        gm12, gm21 = gs12 - g_s, gs12 + g_s
+        ge1 = add3(ge1, add3(scale3(d1, gm11), scale3(d2, gm12)))
+        ge2 = add3(ge2, add3(scale3(d1, gm21), scale3(d2, gm22)))
+        gd1 = add3(gd1, add3(scale3(e1, gm11), scale3(e2, gm21)))
+        gd2 = add3(gd2, add3(scale3(e1, gm12), scale3(e2, gm22)))
+    g_c = [zero] * 3
+    if w.c1:
+        dc = P["dc"]
+        cdc, dcdc = _dot3(c, dc), _dot3(dc, dc)
+        k = g_per_face * w.c1 / det
+        g_dc = add3(scale3(dc, 2 * k), scale3(c, -2 * k * cdc / det))
+        g_c = scale3(dc, -2 * k * cdc / det)
+        g_det = g_det + k * (-dcdc + 2 * cdc * cdc / det) / det
+        gd1 = add3(gd1, _cross3(e2, g_dc))
+        ge2 = add3(ge2, _cross3(g_dc, d1))
+        ge1 = add3(ge1, _cross3(d2, g_dc))
+        gd2 = add3(gd2, _cross3(g_dc, e1))
+    g_det = torch.where(P["valid"], g_det + g_root / (2 * root), zero)
+    g_c = add3(g_c, scale3(c, 2 * g_det))
+    ge1 = add3(ge1, add3(_cross3(e2, g_c), add3(scale3(e1, 2 * g11_g), scale3(e2, g12_g))))
+    ge2 = add3(ge2, add3(_cross3(g_c, e1), add3(scale3(e2, 2 * g22_g), scale3(e1, g12_g))))
+
+    def to_vertices(g1, g2):  # edge gradients (3 x (..., F)) -> vertex gradients (..., N, 3) times grad
+        g1, g2 = torch.stack(g1, -2), torch.stack(g2, -2)  # (..., 3, F)
+        out = g1.new_zeros(g1.shape[:-1] + h.shape[-2:-1])
+        out.index_add_(-1, faces[:, 1], g1).index_add_(-1, faces[:, 2], g2).index_add_(-1, faces[:, 0], -(g1 + g2))
+        return out.transpose(-1, -2).to(h.dtype) * grad[..., None, None]
+
+    g_verts, g_field = to_vertices(ge1, ge2), to_vertices(gd1, gd2)
+    if g_h is not None:
+        g_field = g_field + grad[..., None, None] * g_h
+    return g_verts, g_field
+
+
+class _QuadraticForm(torch.autograd.Function):
+    """``_quadratic`` with its gradient written out (``_quadratic_gradient``); a second derivative
+    (create_graph, e.g. the shooting step's Jacobian) goes through autograd on the closed form."""
+
+    @staticmethod
+    def forward(ctx, verts, h, faces, w, compute):
+        total, parts = _quadratic_parts(verts, faces, h, w, compute)
+        ctx.save_for_backward(verts, h, faces)
+        ctx.parts, ctx.w, ctx.compute = parts, w, compute
+        return total
+
+    @staticmethod
+    def backward(ctx, grad):
+        verts, h, faces = ctx.saved_tensors
+        if torch.is_grad_enabled():  # create_graph: a differentiable gradient
+            with torch.enable_grad():
+                total = _quadratic_parts(verts, faces, h, ctx.w, ctx.compute)[0]
+                return (*torch.autograd.grad(total, (verts, h), grad, create_graph=True, allow_unused=True),
+                        None, None, None)
+        return (*_quadratic_gradient(ctx.parts, h, faces, ctx.w, grad), None, None, None)
 
 
 def _dot(x, y):
@@ -300,12 +439,15 @@ def metric_matrix(verts, faces, fields, weights=PRESETS["body"]):
     return (gram + gram.transpose(0, 1)) / 2
 
 
-def path_energy(path, faces, weights=PRESETS["body"], duration=1.0, per_step=False):
+def path_energy(path, faces, weights=PRESETS["body"], duration=1.0, per_step=False, compute_dtype=None):
     """Discrete path energy of a path of meshes: path (..., T, N, 3) -> (...).
 
     E = sum_k G_{m_k}(q_{k+1} - q_k, q_{k+1} - q_k) / dt,  dt = duration / (T - 1),
     m_k the midpoint (q_k + q_{k+1}) / 2: the Riemann sum of int_0^duration G(q', q') dt.
-    With per_step=True returns the (..., T - 1) terms of the sum instead.
+    With per_step=True returns the (..., T - 1) terms of the sum instead. compute_dtype: the dtype
+    of the per-face algebra (default the path's; the face edges are taken and the sums accumulated
+    in the path's dtype, so float32 algebra on a float64 path loses ~1e-6 relative, not the
+    coordinates' digits).
     """
     w = H2Weights.parse(weights)
     _check(path, faces)
@@ -314,7 +456,7 @@ def path_energy(path, faces, weights=PRESETS["body"], duration=1.0, per_step=Fal
     steps = path[..., 1:, :, :] - path[..., :-1, :, :]
     mids = (path[..., 1:, :, :] + path[..., :-1, :, :]) / 2
     dt = duration / (path.shape[-3] - 1)
-    terms = _quadratic(mids, faces, steps, w) / dt
+    terms = _quadratic(mids, faces, steps, w, compute_dtype) / dt
     return terms if per_step else terms.sum(-1)
 
 

@@ -18,7 +18,7 @@ from ..transforms import Similarity
 from ..varifold import VarifoldLoss, is_oriented
 from .multiscale import check_face_weights, check_landmarks, level_kernels, register
 from .prealign import surface_moments
-from .problem import LEVEL_FTOL, end_whitening, landmark_pull, orient_like
+from .problem import ENERGY_DTYPE, LEVEL_FTOL, end_whitening, landmark_pull, orient_like
 
 #: dtype of the joint solve's start, the geodesic between the two registrations' codes (with
 #: ``geodesics.FRAMES_PLATEAU``: within 0.2 mm of float64's on human bodies at half the time)
@@ -159,7 +159,7 @@ def match_registered(basis, scans, regs, steps, level, weights, monitor, dtype=t
 
     def objective(x):
         meshes = decode(template, fields, path_of(x))
-        energy = path_energy(meshes, faces, weights)
+        energy = path_energy(meshes, faces, weights, compute_dtype=ENERGY_DTYPE)
         ends_mesh = meshes[[0, -1]]
         gammas = [gamma(mesh, faces) for (gamma, _, _), mesh in zip(ends, ends_mesh)]
         pulls = [pull(mesh) for (_, pull, _), mesh in zip(ends, ends_mesh)]
