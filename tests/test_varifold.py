@@ -363,3 +363,23 @@ def test_auto_truncates_a_short_cutoff_from_fewer_pairs_with_keops_only(monkeypa
     assert V.kernels.choose_backend(small, small, 0.01, 2.0, "cpu") == "dense"
     monkeypatch.setattr(V.kernels, "_KEOPS", False)
     assert V.kernels.choose_backend(n, n, 0.01, 2.0, "cpu") == "dense"
+
+
+def test_keops_cpu_flags_are_set_only_while_pykeops_imports_and_never_over_the_users(monkeypatch):
+    """On Linux x86_64 KeOps' CPU kernels get KEOPS_CPU_FLAGS through CXXFLAGS while pykeops imports (it
+    reads them then), and the environment is as it was after; a user's CXXFLAGS, or another platform,
+    are left alone."""
+    monkeypatch.delenv("CXXFLAGS", raising=False)
+    monkeypatch.setattr(V.kernels.platform, "system", lambda: "Linux")
+    monkeypatch.setattr(V.kernels.platform, "machine", lambda: "x86_64")
+    with V.kernels._keops_cpu_flags():
+        assert V.kernels.os.environ["CXXFLAGS"] == V.kernels.KEOPS_CPU_FLAGS
+    assert "CXXFLAGS" not in V.kernels.os.environ
+    monkeypatch.setenv("CXXFLAGS", "-O1")
+    with V.kernels._keops_cpu_flags():
+        assert V.kernels.os.environ["CXXFLAGS"] == "-O1"
+    assert V.kernels.os.environ["CXXFLAGS"] == "-O1"
+    monkeypatch.delenv("CXXFLAGS")
+    monkeypatch.setattr(V.kernels.platform, "system", lambda: "Darwin")
+    with V.kernels._keops_cpu_flags():
+        assert "CXXFLAGS" not in V.kernels.os.environ
