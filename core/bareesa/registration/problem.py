@@ -60,9 +60,10 @@ SCREEN_CELL = 0.25
 POSE_ALIGN_ITER = 15
 #: a level's progress reports carry the code and alignment so far every this many iterations
 PREVIEW_EVERY = 5
-#: the per-face algebra of a level's path energy (``h2_metric.path_energy(compute_dtype=)``; edges and
-#: sums stay in the objective's dtype): float32 is within 2e-7 of float64 in the energy and 2e-6 in its
-#: gradient on `human` paths, and 35 % faster (bench/README)
+#: the per-face algebra of a level's path energy and of the straight paths' that score pose starts
+#: (``h2_metric.path_energy(compute_dtype=)``; edges and sums stay in the objective's dtype): float32 is
+#: within 2e-7 of float64 in the energy and 2e-6 in its gradient on `human` paths, and 35 % faster
+#: (bench/README)
 ENERGY_DTYPE = torch.float32
 
 
@@ -265,7 +266,7 @@ class RegistrationProblem:
             code = torch.as_tensor(code, dtype=self.dtype, device=self.device)
             ramp = torch.linspace(0, 1, level.steps + 1, dtype=self.dtype, device=self.device)[:, None]
             return float(h2_metric.path_energy(decode(self.template, self.fields, ramp * code), self.faces,
-                                               self.metric))
+                                               self.metric, compute_dtype=ENERGY_DTYPE))
 
     def screen_score(self, level, code, transform, energy):
         """weight * (Gamma + landmark term) + energy of a solved path at ``level``'s sigma and weight,
