@@ -5,7 +5,7 @@ import pytest
 import trimesh
 
 from bareesa import registration, synthetic
-from bareesa.errors import InputError
+from bareesa.errors import InputError, MeshError
 from bareesa.registration import multiscale
 
 
@@ -297,3 +297,16 @@ def test_a_candidate_found_against_a_pose_prototype_is_screened_from_it():
     assert multiscale._start(zero, poses, multiscale.Alignment(0.1, None)) is zero
     given = np.stack([np.zeros(4), np.ones(4)])  # a caller's init_code wins
     assert multiscale._start(given, poses, multiscale.Alignment(0.1, None, 2)) is given
+
+
+def test_surface_centroid_is_surface_moments_area_and_centroid_bit_for_bit():
+    """The pose stage centres each start by ``surface_centroid``: the same numbers as ``surface_moments``
+    (so no alignment moves), weighted or not, and the same refusal of a surface without area."""
+    from bareesa.registration.prealign import surface_centroid, surface_moments
+    verts, faces = synthetic.blob_mesh(2, seed=5)
+    weights = np.random.default_rng(0).uniform(0.0, 2.0, len(faces))
+    for w in (None, weights):
+        area, center = surface_centroid(verts, faces, w)
+        assert (area, *center) == (surface_moments(verts, faces, w)[0], *surface_moments(verts, faces, w)[1])
+    with pytest.raises(MeshError, match="zero"):
+        surface_centroid(verts, faces, np.zeros(len(faces)))

@@ -60,6 +60,24 @@ def _bounded_log_scale(l):
     return PREALIGN_LOG_SCALE_LIMIT * math.tanh(l / PREALIGN_LOG_SCALE_LIMIT)
 
 
+def _area_centroid(verts, faces, face_weights):
+    """Face areas (F,) (times face weights), their total and the area-weighted centroid (3,)."""
+    _, a, barycentres = face_geometry(verts, faces)
+    if face_weights is not None:
+        a = a * face_weights
+    total = a.sum()
+    if not total > 0:
+        raise MeshError("the scan has zero (weighted) surface area; nothing to register")
+    return a, total, (a[:, None] * barycentres).sum(0) / total
+
+
+def surface_centroid(verts, faces, face_weights=None):
+    """Weighted area and centroid (3,) of a surface, as ``surface_moments`` gives them (without the
+    second moment's cost): verts (N, 3), faces (F, 3), face_weights (F,) or None."""
+    _, total, center = _area_centroid(verts, faces, face_weights)
+    return float(total), center
+
+
 def surface_moments(verts, faces, face_weights=None):
     """Weighted area, centroid (3,) and second moment about it (3, 3) of a surface: exact integrals.
 
@@ -67,13 +85,7 @@ def surface_moments(verts, faces, face_weights=None):
     int (x - c)(x - c)^T dA / A, so sqrt of its trace is the RMS radius.
     """
     p = np.asarray(verts, dtype=np.float64)[np.asarray(faces)]
-    _, a, barycentres = face_geometry(verts, faces)
-    if face_weights is not None:
-        a = a * face_weights
-    total = a.sum()
-    if not total > 0:
-        raise MeshError("the scan has zero (weighted) surface area; nothing to register")
-    center = (a[:, None] * barycentres).sum(0) / total
+    a, total, center = _area_centroid(verts, faces, face_weights)
     q = p - center
     s = q.sum(1)
     # int over a triangle of x x^T = A/12 (sum_i q_i q_i^T + s s^T), s = sum_i q_i

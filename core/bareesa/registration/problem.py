@@ -19,7 +19,7 @@ from ..mesh import face_geometry, smoothed_normals, winding_parity
 from ..optimize import minimize_lbfgs
 from ..transforms import Similarity, axis_angle_rotation
 from ..varifold import BIN_CELL, BinnedMeasureLoss, BinnedVarifoldLoss, VarifoldLoss, default_cutoff, is_oriented
-from .prealign import PREALIGN_CELL, CoarseVarifold, coarse_measure, surface_moments
+from .prealign import PREALIGN_CELL, CoarseVarifold, coarse_measure, surface_centroid, surface_moments
 
 #: L-BFGS stops a level when an iteration lowers the objective by less than this relative amount
 #: (the objective is dominated by weight x varifold; later digits only polish the path's interior)
@@ -233,7 +233,7 @@ class RegistrationProblem:
         sigma = level.sigma * self.scale
         cell = PREALIGN_CELL * sigma
         moved = transform.apply(self.scan)
-        scan_center = surface_moments(moved, self.scan_faces_np, self.scan_weights_np)[1]
+        scan_center = surface_centroid(moved, self.scan_faces_np, self.scan_weights_np)[1]
         # one loss against the scan for every code: the scan's self term is summed once
         scan = BinnedMeasureLoss(*coarse_measure(moved - self.center, self.scan_faces, self.scan_weights_np, cell),
                                  sigma)
@@ -245,7 +245,7 @@ class RegistrationProblem:
                 verts = decode(self.template, self.fields, torch.as_tensor(code, dtype=self.dtype, device=self.device))
             verts = verts.detach().cpu().numpy().astype(np.float64)
             x0 = np.zeros(7)
-            x0[3:6] = scan_center - surface_moments(verts, self.faces_np)[1]
+            x0[3:6] = scan_center - surface_centroid(verts, self.faces_np)[1]
             coarse = CoarseVarifold(scan, coarse_measure(verts - self.center, self.faces, None, cell), sigma)
             fun = lambda p: coarse(torch.cat([p[:6], log_scale(p[6:])]), eye)  # noqa: E731
             if max_iter:
