@@ -215,7 +215,17 @@ def _quadratic(verts, faces, h, w, compute=None):
     if torch.is_grad_enabled() and (verts.requires_grad or h.requires_grad):
         verts, h = torch.broadcast_tensors(verts, h)
         return _QuadraticForm.apply(verts, h, faces, w, compute)
-    return _quadratic_parts(verts, faces, h, w, compute)[0]
+    return _robust_parts(verts, faces, h, w, compute)[0]
+
+
+def _robust_parts(verts, faces, h, w, compute):
+    """``_quadratic_parts`` in ``compute``, or in verts' dtype where that is not finite (a face crushed
+    by a line search's trial step: its det^3 underflows float32) -> (total, parts, dtype used)."""
+    total, parts = _quadratic_parts(verts, faces, h, w, compute)
+    if compute != verts.dtype and not bool(torch.isfinite(total).all()):
+        compute = verts.dtype
+        total, parts = _quadratic_parts(verts, faces, h, w, compute)
+    return total, parts, compute
 
 
 def _quadratic_parts(verts, faces, h, w, compute):
@@ -378,7 +388,7 @@ class _QuadraticForm(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, verts, h, faces, w, compute):
-        total, parts = _quadratic_parts(verts, faces, h, w, compute)
+        total, parts, compute = _robust_parts(verts, faces, h, w, compute)
         ctx.save_for_backward(verts, h, faces)
         ctx.parts, ctx.w, ctx.compute = parts, w, compute
         return total
@@ -391,7 +401,12 @@ class _QuadraticForm(torch.autograd.Function):
                 total = _quadratic_parts(verts, faces, h, ctx.w, ctx.compute)[0]
                 return (*torch.autograd.grad(total, (verts, h), grad, create_graph=True, allow_unused=True),
                         None, None, None)
-        return (*_quadratic_gradient(ctx.parts, h, faces, ctx.w, grad), None, None, None)
+        grads = _quadratic_gradient(ctx.parts, h, faces, ctx.w, grad)
+        if ctx.compute != verts.dtype and not all(bool(torch.isfinite(g).all()) for g in grads):
+            # as in the forward: a crushed face's terms overflow float32; its own dtype has the range
+            parts = _quadratic_parts(verts, faces, h, ctx.w, verts.dtype)[1]
+            grads = _quadratic_gradient(parts, h, faces, ctx.w, grad)
+        return (*grads, None, None, None)
 
 
 def _dot(x, y):
