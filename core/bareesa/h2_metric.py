@@ -234,11 +234,15 @@ def _quadratic_parts(verts, faces, h, w, compute):
     n_faces = faces.shape[0]
     p = _corner_components(verts, corners, n_faces)
     v = _corner_components(h, corners, n_faces)
-    sub = lambda x, y: tuple((a - b).to(compute) for a, b in zip(x, y))  # noqa: E731
+    sub = lambda x, y: tuple(a - b for a, b in zip(x, y))  # noqa: E731
     e1, e2, d1, d2 = sub(p[1], p[0]), sub(p[2], p[0]), sub(v[1], v[0]), sub(v[2], v[0])
     c = _cross3(e1, e2)
     det = _dot3(c, c)
-    valid = det > torch.finfo(compute).tiny * 1e6
+    # which faces are degenerate is decided in verts' dtype: a face valid there whose det underflows
+    # ``compute`` makes the sums non-finite, and ``_robust_parts`` redoes them in verts' dtype
+    valid = det > torch.finfo(verts.dtype).tiny * 1e6
+    cast = lambda x: tuple(a.to(compute) for a in x)  # noqa: E731
+    e1, e2, d1, d2, c, det = cast(e1), cast(e2), cast(d1), cast(d2), cast(c), det.to(compute)
     det = torch.where(valid, det, torch.ones_like(det))
     root = torch.sqrt(det)
     area = torch.where(valid, root / 2, torch.zeros_like(det))  # (..., F)
