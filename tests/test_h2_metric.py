@@ -223,24 +223,31 @@ def test_float32_algebra_on_a_float64_path_stays_close_to_float64():
     assert abs(e_coords.item() - e64.item()) > 10 * abs(e32.item() - e64.item())
 
 
-def test_float32_algebra_falls_back_to_float64_where_tiny_faces_overflow_it():
-    # faces of ~0.1 mm (a line search's trial step can crush a face): det^3 underflows float32 and the
-    # gradient is not finite there; path_energy then redoes the algebra in the path's own dtype
+def test_float32_algebra_falls_back_to_float64_where_a_crushed_face_or_tiny_faces_overflow_it():
+    # a line search's trial step can crush a face: its det underflows float32 (not float64) and the
+    # gradient is not finite there; on a mesh of tiny faces the products of edges underflow. path_energy
+    # then redoes the algebra in the path's own dtype
     v, f = _mesh()
-    v = v * 1e-3
     rng = np.random.default_rng(0)
-    path = torch.stack([v, v + 1e-5 * torch.tensor(rng.normal(size=v.shape))]).requires_grad_(True)
-    mids, steps = (path[1:] + path[:-1]).detach() / 2, (path[1:] - path[:-1]).detach()
-    parts = H._quadratic_parts(mids, f, steps, BODY, torch.float32)[1]
-    raw = H._quadratic_gradient(parts, steps, f, BODY, torch.ones(1, dtype=v.dtype))
-    assert not all(bool(torch.isfinite(g).all()) for g in raw)  # the hazard is real here
-    e64 = H.path_energy(path, f, BODY)
-    (g64,) = torch.autograd.grad(e64, path)
-    e32 = H.path_energy(path, f, BODY, compute_dtype=torch.float32)
-    (g32,) = torch.autograd.grad(e32, path)
-    assert torch.isfinite(g32).all()
-    assert e32.item() == pytest.approx(e64.item(), rel=1e-6)
-    assert torch.allclose(g32, g64, rtol=1e-6, atol=1e-6 * float(g64.abs().max()))
+    crushed = v.clone()
+    a, b, c = f[0]
+    crushed[c] = crushed[a] + 0.3 * (crushed[b] - crushed[a]) + 1e-24 * (crushed[c] - crushed[a])
+    for verts in (crushed, v * 1e-6):
+        step = 1e-3 * float(verts.abs().max()) * torch.tensor(rng.normal(size=v.shape))
+        step[f[0]] = 0.0  # the crushed face stays crushed at the midpoint
+        path = torch.stack([verts, verts + step]).requires_grad_(True)
+        mids, steps = (path[1:] + path[:-1]).detach() / 2, (path[1:] - path[:-1]).detach()
+        total, parts = H._quadratic_parts(mids, f, steps, BODY, torch.float32)
+        raw = H._quadratic_gradient(parts, steps, f, BODY, torch.ones(1, dtype=v.dtype))
+        finite = bool(torch.isfinite(total).all()) and all(bool(torch.isfinite(g).all()) for g in raw)
+        assert not finite or float(parts["det"].max()) < H.SMALL_FACES_DET  # the hazard is real here
+        e64 = H.path_energy(path, f, BODY)
+        (g64,) = torch.autograd.grad(e64, path)
+        e32 = H.path_energy(path, f, BODY, compute_dtype=torch.float32)
+        (g32,) = torch.autograd.grad(e32, path)
+        assert torch.isfinite(g32).all()
+        assert e32.item() == pytest.approx(e64.item(), rel=1e-6)
+        assert torch.allclose(g32, g64, rtol=1e-6, atol=1e-6 * float(g64.abs().max()))
 
 
 def test_metric_matrix_gradient_matches_finite_differences():

@@ -218,11 +218,18 @@ def _quadratic(verts, faces, h, w, compute=None):
     return _robust_parts(verts, faces, h, w, compute)[0]
 
 
+#: ``compute`` algebra is redone in verts' dtype when no face has det = |e1 x e2|^2 above this (faces of
+#: ~1e-5 units and smaller, where float32 products of edges underflow)
+SMALL_FACES_DET = 1e-20
+
+
 def _robust_parts(verts, faces, h, w, compute):
     """``_quadratic_parts`` in ``compute``, or in verts' dtype where that is not finite (a face crushed
-    by a line search's trial step: its det^3 underflows float32) -> (total, parts, dtype used)."""
+    by a line search's trial step: its det underflows float32) or every face is tiny (SMALL_FACES_DET)
+    -> (total, parts, dtype used)."""
     total, parts = _quadratic_parts(verts, faces, h, w, compute)
-    if compute != verts.dtype and not bool(torch.isfinite(total).all()):
+    if compute != verts.dtype and (not bool(torch.isfinite(total).all())
+                                   or float(parts["det"].max()) < SMALL_FACES_DET):
         compute = verts.dtype
         total, parts = _quadratic_parts(verts, faces, h, w, compute)
     return total, parts, compute
@@ -256,9 +263,10 @@ def _quadratic_parts(verts, faces, h, w, compute):
         a, b = g22 * s11 - g12 * s12, g22 * s12 - g12 * s22  # adj(g) S = [[a, b], [c_, d]]
         c_, d = g11 * s12 - g12 * s11, g11 * s22 - g12 * s12
         beta = (w.b1 - w.a1) / 8
-        per_face = per_face + (w.a1 * (a * a + 2 * b * c_ + d * d) + beta * (a + d) ** 2) / (det * det)
-        per_face = per_face + w.d1 * 2 * (m21 - m12) ** 2 / det
-        parts.update(m12=m12, m21=m21, s11=s11, s12=s12, s22=s22, a=a, b=b, c_=c_, d=d)
+        # divided by det twice, never by det^2 or det^3 (their range ends at faces of ~1 mm in float32)
+        first = (w.a1 * (a * a + 2 * b * c_ + d * d) + beta * (a + d) ** 2) / det / det
+        per_face = per_face + first + w.d1 * 2 * (m21 - m12) ** 2 / det
+        parts.update(m12=m12, m21=m21, s11=s11, s12=s12, s22=s22, a=a, b=b, c_=c_, d=d, first=first)
     if w.c1:
         dc = tuple(x + y for x, y in zip(_cross3(d1, e2), _cross3(e1, d2)))
         per_face = per_face + w.c1 * (_dot3(dc, dc) - _dot3(c, dc) ** 2 / det) / det
@@ -337,15 +345,14 @@ def _quadratic_gradient(parts, h, faces, w, grad):
         a, b, c_, d = P["a"], P["b"], P["c_"], P["d"]
         g11, g12, g22 = P["g11"], P["g12"], P["g22"]
         beta = (w.b1 - w.a1) / 8
-        det2 = det * det
-        q = g_per_face / det2
+        q = g_per_face / det / det
         trace = 2 * beta * (a + d)
         ga, gd = q * (2 * w.a1 * a + trace), q * (2 * w.a1 * d + trace)
         gb, gc_ = q * (2 * w.a1 * c_), q * (2 * w.a1 * b)
-        g_det = g_det - 2 * g_per_face * (w.a1 * (a * a + 2 * b * c_ + d * d) + beta * (a + d) ** 2) / (det2 * det)
+        g_det = g_det - 2 * g_per_face * P["first"] / det
         s = m21 - m12
         g_s = g_per_face * 4 * w.d1 * s / det
-        g_det = g_det - g_per_face * 2 * w.d1 * s * s / det2
+        g_det = g_det - g_per_face * 2 * w.d1 * (s * s / det) / det
         gs11, gs22 = ga * g22 - gc_ * g12, gd * g11 - gb * g12
         gs12 = gb * g22 + gc_ * g11 - (ga + gd) * g12
         g22_g = g22_g + ga * s11 + gb * s12
