@@ -229,7 +229,7 @@ def _robust_parts(verts, faces, h, w, compute):
     -> (total, parts, dtype used)."""
     total, parts = _quadratic_parts(verts, faces, h, w, compute)
     if compute != verts.dtype and (not bool(torch.isfinite(total).all())
-                                   or float(parts["det"].max()) < SMALL_FACES_DET):
+                                   or float(torch.where(parts["valid"], parts["det"], 0.0).max()) < SMALL_FACES_DET):
         compute = verts.dtype
         total, parts = _quadratic_parts(verts, faces, h, w, compute)
     return total, parts, compute
