@@ -313,7 +313,7 @@ def _quadratic_gradient(parts, h, faces, w, grad):
     g_per_face = area
     g_det, g_root, g11_g, g12_g, g22_g = zero, zero, zero, zero, zero
     ge1, ge2, gd1, gd2 = [zero] * 3, [zero] * 3, [zero] * 3, [zero] * 3
-    add3 = lambda x, y, s=1.0: tuple(a + s * b for a, b in zip(x, y))  # noqa: E731
+    add3 = lambda x, y: tuple(a + b for a, b in zip(x, y))  # noqa: E731
     scale3 = lambda x, s: tuple(a * s for a in x)  # noqa: E731
     corners = faces.T.reshape(-1)
     gather = lambda t: t[..., corners].unflatten(-1, (3, n_faces))  # (..., N) -> (..., 3, F)  # noqa: E731
