@@ -263,3 +263,66 @@ def test_shape_weights_are_saved_and_registration_and_random_bodies_use_them(tmp
             workflows.random_bodies(loaded, 1, seed=0, options=workflows.Options(weights=given))
         assert seen.value.args[0] == expected
         assert workflows.Options(weights=given).metric(loaded) == (loaded.weights if given is None else expected)
+
+
+def _with_coarse_mesh(basis):
+    """The basis with icosphere(2) as its coarse mesh: each coarse vertex a template vertex (one-hot weights
+    on a face around it) -> (basis, template vertex of each coarse vertex)."""
+    cv, cf = synthetic.icosphere(2)
+    vertex = np.argmin(((cv[:, None] - synthetic.icosphere(3)[0][None]) ** 2).sum(-1), axis=1)
+    face = np.array([np.flatnonzero((basis.faces == v).any(1))[0] for v in vertex])
+    corners = basis.faces[face]
+    weights = (corners == vertex[:, None]).astype(np.float64)
+    basis.extras.update(coarse_faces=cf, coarse_corners=corners, coarse_weights=weights)
+    return basis, vertex
+
+
+def test_a_coarse_mesh_deforms_with_the_template_and_is_saved_with_the_basis(tmp_path):
+    basis = synthetic.smooth_sphere_basis(subdivisions=3, n_fields=5, seed=2)[0]
+    assert basis.coarse_mesh() is None
+    basis, vertex = _with_coarse_mesh(basis)
+    template, faces, fields = basis.coarse_mesh()
+    assert faces.shape == (320, 3) and template.shape == (162, 3) and fields.shape == (5, 162, 3)
+    np.testing.assert_allclose(template, basis.template[vertex], atol=1e-15)
+    code = np.random.default_rng(0).normal(size=5)
+    np.testing.assert_allclose(template + np.tensordot(code, fields, axes=1),
+                               (basis.template + np.tensordot(code, basis.fields, axes=1))[vertex], atol=1e-14)
+    basis_io.save_basis(tmp_path / "b.npz", basis)
+    again = basis_io.load_basis(tmp_path / "b.npz").coarse_mesh()
+    for a, b in zip(again, (template, faces, fields)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_the_coarse_path_energy_is_exact_at_the_template_and_close_nearby_only_with_its_correction():
+    """On the sphere the coarse mesh under-prices every direction (its finer detail), so the positive part of
+    the correction is all of it: exact at the template, within 1 % at a third of the fields' unit."""
+    from bareesa.registration.problem import PathEnergy, coarse_correction
+
+    basis, _ = _with_coarse_mesh(synthetic.smooth_sphere_basis(subdivisions=3, n_fields=5, seed=2)[0])
+    w = basis.shape_metric
+    fine = PathEnergy(*basis.tensors(), w)
+    coarse_mesh = [torch.as_tensor(a) for a in basis.coarse_mesh()]
+    correction = coarse_correction(basis.template_metric(w), basis.coarse_metric(w))
+    assert np.linalg.eigvalsh(correction).min() > -1e-9 * np.abs(correction).max()  # never lowers an energy
+    coarse = PathEnergy(*coarse_mesh, w, correction=correction, on_template=False)
+    bare = PathEnergy(*coarse_mesh, w, on_template=False)
+    assert coarse.mean_edge > 1.8 * fine.mean_edge
+    rng = np.random.default_rng(1)
+    for scale, tol in ((1e-4, 1e-4), (0.3, 0.01)):
+        direction = torch.as_tensor(rng.normal(size=5))
+        path = torch.linspace(0, 1, 4, dtype=torch.float64)[:, None] * scale * direction
+        e_fine, e_coarse, e_bare = (float(f(path)[0]) for f in (fine, coarse, bare))
+        assert abs(e_coarse / e_fine - 1) < tol, (scale, e_coarse / e_fine)
+        assert abs(e_bare / e_fine - 1) > 2 * abs(e_coarse / e_fine - 1)  # the correction is what makes it close
+    meshes = fine(path)[1]
+    assert meshes.shape == (4, len(basis.template), 3) and fine.on_template and not coarse.on_template
+
+
+def test_the_coarse_correction_keeps_only_the_positive_part_of_the_difference():
+    from bareesa.registration.problem import coarse_correction
+
+    rng = np.random.default_rng(3)
+    q = np.linalg.qr(rng.normal(size=(4, 4)))[0]
+    fine, coarse = q @ np.diag([3.0, 2.0, 1.0, 1.0]) @ q.T, q @ np.diag([1.0, 2.5, 0.5, 1.0]) @ q.T
+    d = coarse_correction(fine, coarse)
+    np.testing.assert_allclose(d, q @ np.diag([2.0, 0.0, 0.5, 0.0]) @ q.T, atol=1e-12)
