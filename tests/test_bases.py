@@ -239,22 +239,3 @@ def test_deformables_generator_keeps_topology_under_simple_deform():
     deformables.animate(obj, [("BEND", "X", 90.0)])
     seq = blender.bake(obj, [1, deformables.FRAMES])
     assert seq.shape == (2, len(v), 3) and np.abs(seq[0] - v).max() < 1e-6 and np.abs(seq[1] - v).max() > 0.2
-
-
-def test_the_human_carries_a_coarse_mesh_on_its_surface_for_the_coarse_levels_energy():
-    from bareesa.registration.problem import COARSE_ENERGY_EDGES
-
-    b = load_basis("human")
-    template, faces, fields = b.coarse_mesh()
-    rep = validate_mesh(template, faces, "coarse")
-    assert rep.n_boundary_edges == 0 and rep.n_nonmanifold_edges == 0 and rep.n_degenerate_faces == 0
-    assert 0.2 * len(b.faces) < len(faces) < 0.4 * len(b.faces) and fields.shape == (b.n_fields, len(template), 3)
-    # every coarse vertex is a point of a template face, and the surfaces' areas agree
-    corners, weights = b.extras["coarse_corners"], b.extras["coarse_weights"]
-    assert (weights >= 0).all() and np.allclose(weights.sum(1), 1)
-    area = lambda v, f: np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum() / 2
-    assert abs(area(template, faces) / area(b.template, b.faces) - 1) < 0.02
-    # the registration levels above the finest take their energy on it, the finest does not
-    edge = np.linalg.norm(template[faces] - template[faces[:, [1, 2, 0]]], axis=2).mean()
-    coarse = [lv.sigma * b.scale >= COARSE_ENERGY_EDGES * edge for lv in b.schedule]
-    assert coarse == [True] * (len(b.schedule) - 1) + [False]

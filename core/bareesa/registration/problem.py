@@ -65,9 +65,6 @@ PREVIEW_EVERY = 5
 #: within 2e-7 of float64 in the energy and 2e-6 in its gradient on `human` paths, and 35 % faster
 #: (bench/README)
 ENERGY_DTYPE = torch.float32
-#: ... and levels whose sigma is at least this many times the mean edge of the basis' coarse mesh
-#: (``Basis.coarse_mesh``) take it on that mesh (``PathEnergy``); their varifold stays on the template
-COARSE_ENERGY_EDGES = 1.2
 
 
 def log_scale(l):
@@ -201,42 +198,6 @@ def end_whitening(gram, template, faces, fields, weight, code):
     return whitening(gram + 4 * math.pi * weight * _normal_gram(start, faces, fields))
 
 
-def coarse_correction(gram, coarse_gram):
-    """The flat correction (P, P) of a coarse mesh's path energy: the part of G-bar(0) - G-bar_coarse(0)
-    that is positive semi-definite, so the energy is exact at the template in the directions the coarse
-    mesh under-prices (its finer detail) and never below the coarse mesh's own. Its negative part (directions
-    the coarse mesh over-prices, ~2x at most on `human`) is left out: added, it makes a path's energy
-    negative far from the template, and a level ran away to a monstrous body (bench/README)."""
-    evals, evecs = np.linalg.eigh((gram - coarse_gram + (gram - coarse_gram).T) / 2)
-    return (evecs * np.clip(evals, 0.0, None)) @ evecs.T
-
-
-class PathEnergy:
-    """The path energy of latent paths on a mesh that deforms with the basis (its template or coarse mesh):
-    alpha (T+1, P) tensor -> (energy, meshes (T+1, n, 3)), the per-face algebra in ENERGY_DTYPE.
-
-    On a coarse mesh the energy of the fields' finer detail, which it cannot represent (its Laplacian
-    term is ~60 % of the template's), is added back flat: correction D (P, P) adds sum_k da_k^T D da_k / dt
-    (``coarse_correction``).
-    """
-
-    def __init__(self, template, faces, fields, metric, correction=None, on_template=True):
-        self.template, self.faces, self.fields, self.metric = template, faces, fields, metric
-        self.on_template = on_template
-        self.correction = None if correction is None else torch.as_tensor(correction, dtype=template.dtype,
-                                                                          device=template.device)
-        edges = (template[faces] - template[faces[:, [1, 2, 0]]]).norm(dim=-1)
-        self.mean_edge = float(edges.mean())
-
-    def __call__(self, alpha):
-        meshes = decode(self.template, self.fields, alpha)
-        energy = h2_metric.path_energy(meshes, self.faces, self.metric, compute_dtype=ENERGY_DTYPE)
-        if self.correction is not None:
-            step = alpha[1:] - alpha[:-1]
-            energy = energy + ((step @ self.correction) * step).sum() * (alpha.shape[0] - 1)
-        return energy, meshes
-
-
 class RegistrationProblem:
     """The constant parts of a registration (template tensors, scan, landmarks) and one level's solve."""
 
@@ -262,20 +223,6 @@ class RegistrationProblem:
         self.dtype, self.device, self.monitor = dtype, device, monitor
         self.scale, self.n_fields = basis.scale, basis.n_fields
         self.template_np, self.faces_np, self.fields_np = basis.template, basis.faces, basis.fields
-        self.fine_energy = PathEnergy(self.template, self.faces, self.fields, metric)
-        coarse = basis.coarse_mesh()
-        self.coarse_energy = None if coarse is None else PathEnergy(
-            *(torch.as_tensor(a, dtype=t.dtype, device=device) for a, t in zip(coarse, (self.template, self.faces,
-                                                                                      self.fields))),
-            metric, correction=coarse_correction(self.gram, basis.coarse_metric(metric)), on_template=False)
-
-    def path_energy(self, level):
-        """The ``PathEnergy`` of ``level``: on the basis' coarse mesh when it has one and sigma is at least
-        COARSE_ENERGY_EDGES x its mean edge, else on the template."""
-        coarse = self.coarse_energy
-        if coarse is not None and level.sigma * self.scale >= COARSE_ENERGY_EDGES * coarse.mean_edge:
-            return coarse
-        return self.fine_energy
 
     def realign(self, level, codes, transform, max_iter=POSE_ALIGN_ITER):
         """The alignment refined for each surface F(code) at ``level``'s sigma (binned binet varifold,
@@ -314,11 +261,12 @@ class RegistrationProblem:
         return out
 
     def straight_energy(self, level, code):
-        """Energy of the straight path 0 -> code in ``level.steps`` steps (``path_energy(level)``): (P,) -> float."""
+        """Energy of the straight path 0 -> code in ``level.steps`` steps: (P,) -> float."""
         with torch.no_grad():
             code = torch.as_tensor(code, dtype=self.dtype, device=self.device)
             ramp = torch.linspace(0, 1, level.steps + 1, dtype=self.dtype, device=self.device)[:, None]
-            return float(self.path_energy(level)(ramp * code)[0])
+            return float(h2_metric.path_energy(decode(self.template, self.fields, ramp * code), self.faces,
+                                               self.metric, compute_dtype=ENERGY_DTYPE))
 
     def screen_score(self, level, code, transform, energy):
         """weight * (Gamma + landmark term) + energy of a solved path at ``level``'s sigma and weight,
@@ -412,14 +360,14 @@ class RegistrationProblem:
         losses = [loss for loss, _ in losses]
         if self.marks is not None:
             lm_pts = self.landmark_points(transform)
-        path_energy = self.path_energy(level)
         terms = {}
 
         def objective(x):
             x = x.to(dtype=dtype, device=device)
             alpha = variables.path(x[:steps * p_dim].reshape(steps, p_dim))
-            energy, meshes = path_energy(alpha)
-            final = meshes[-1] if path_energy.on_template else decode(self.template, self.fields, alpha[-1])
+            meshes = decode(self.template, self.fields, alpha)
+            energy = h2_metric.path_energy(meshes, self.faces, self.metric, compute_dtype=ENERGY_DTYPE)
+            final = meshes[-1]
             if self.n_extra:
                 p = x[steps * p_dim:] * units_t
                 rotation = axis_angle_rotation(p[:3])
