@@ -383,3 +383,26 @@ def test_keops_cpu_flags_are_set_only_while_pykeops_imports_and_never_over_the_u
     monkeypatch.setattr(V.kernels.platform, "system", lambda: "Darwin")
     with V.kernels._keops_cpu_flags():
         assert "CXXFLAGS" not in V.kernels.os.environ
+
+
+def test_grid_runs_looked_up_in_its_table_are_the_ones_binary_search_finds():
+    """``Grid.ranges`` looks each cell's run of sorted points up in a table (``Grid.first``): the same
+    clusters, runs and pair count as searching the sorted keys, for "i" points inside, around and far
+    outside the grid; a grid with far more cells than points (far clutter) keeps no table."""
+    from bareesa.varifold.backends import Grid
+
+    rng = np.random.default_rng(4)
+    on_ellipsoid = lambda n: torch.as_tensor((lambda u: u / np.linalg.norm(u, axis=1, keepdims=True))(  # noqa: E731
+        rng.normal(size=(n, 3))) * [0.5, 0.3, 1.0])
+    y = on_ellipsoid(3000)
+    x = torch.cat([on_ellipsoid(2000) * 1.1, torch.as_tensor(rng.normal(size=(50, 3)) + [-30.0, 9.0, 40.0])])
+    for cutoff in (0.15, 0.4, 1.5):
+        grid = Grid(y, cutoff)
+        assert grid.first is not None
+        looked_up = grid.ranges(x, cutoff, 0.5 * cutoff)
+        grid.first = None
+        searched = grid.ranges(x, cutoff, 0.5 * cutoff)
+        assert looked_up[-1] == searched[-1] > 0
+        for a, b in zip(looked_up[:-1], searched[:-1]):
+            assert torch.equal(a, b)
+    assert Grid(torch.cat([y, torch.tensor([[500.0, 500.0, 500.0]], dtype=y.dtype)]), 0.05).first is None

@@ -13,6 +13,7 @@ from .kernels import KERNELS, default_cutoff, keops_available
 DENSE_CHUNK_BYTES = 256 * 2**20
 CELL_FRACTION = 0.25      # grid cell size of the "j" measure, in units of the cutoff
 CLUSTER_FRACTION = 0.5    # cluster size of the "i" measure, in units of the cutoff
+TABLE_CELLS_PER_POINT = 16  # a grid keeps a table of where each cell's points begin up to this many cells a point
 
 
 # --------------------------------------------------------------------------- kinds of measures
@@ -181,6 +182,21 @@ class Grid:
         keys = ijk[:, 0] + nx * (ijk[:, 1] + ny * ijk[:, 2])
         self.keys, self.perm = torch.sort(keys)
         self.size = y.shape[0]
+        # where each cell's run of sorted points begins (runs are then looked up, not searched for), unless
+        # the grid has far more cells than points (a scan with far clutter)
+        n_cells = nx * ny * self.dims[2]
+        self.first = None
+        if n_cells <= TABLE_CELLS_PER_POINT * max(self.size, 1024):
+            counts = torch.bincount(self.keys, minlength=n_cells)
+            self.first = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)])
+
+    def run_bounds(self, lo, hi):
+        """The sorted points' index ranges [start, end) of the runs of cell keys lo..hi (both (R,) >= 0,
+        inclusive): as ``searchsorted`` finds them, by table when the grid has one."""
+        if self.first is None:
+            return torch.searchsorted(self.keys, lo), torch.searchsorted(self.keys, hi, right=True)
+        top = self.first.shape[0] - 1
+        return self.first[lo.clamp(0, top)], self.first[(hi + 1).clamp(0, top)]
 
     def ranges(self, x, cutoff, cluster_size):
         """Clusters of x (sort perm, (C,2) ranges) and, per cluster, the runs of sorted j points
@@ -222,8 +238,7 @@ class Grid:
         ix1 = torch.floor((hi[:, 0, None, None] + rx - o[0]) / h).long().clamp_max(nx - 1)
         valid &= ix0 <= ix1
         row = nx * (iy + ny * iz)
-        start = torch.searchsorted(self.keys, (ix0 + row).reshape(-1))
-        end = torch.searchsorted(self.keys, (ix1 + row).reshape(-1), right=True)
+        start, end = self.run_bounds((ix0 + row).reshape(-1), (ix1 + row).reshape(-1))
         valid = valid.reshape(-1) & (end > start)
         runs = torch.stack([start[valid], end[valid]], 1)
         owner = torch.arange(C, device=dev)[:, None].expand(C, ky * kz).reshape(-1)[valid]
