@@ -206,6 +206,19 @@ def test_strongly_curved_step_is_refined_and_matches_a_finer_step_reference():
     assert np.array_equal(path[:2], np.stack([a0, a1]))
 
 
+def test_a_frame_that_cannot_be_reached_says_how_many_were_and_carries_them():
+    b = small_basis()
+    t, f, h = b.tensors()
+    a0, a1 = np.zeros(4), 0.6 * np.array([1.5, -1.0, 0.8, 1.2])  # one step per frame reaches frame 1, not 2
+    with pytest.raises(shooting.ShootingFailed, match="frame 2 of 4: .*ask for at most 1 frame or start") as err:
+        shooting.extrapolate(t, f, h, a0, a1, b.weights, 4, max_substeps=1)
+    reached = shooting.extrapolate(t, f, h, a0, a1, b.weights, 1, max_substeps=1)  # the advice holds
+    assert err.value.frames.shape == (1, 4) and np.allclose(err.value.frames, reached[2:], rtol=0, atol=1e-12)
+    with pytest.raises(shooting.ShootingFailed, match="frame 1 of 4: .*smoothly: start from closer") as err:
+        shooting.extrapolate(t, f, h, a0, a1 / 0.6 * 0.75, b.weights, 4, max_substeps=1)
+    assert err.value.frames.shape == (0, 4)
+
+
 def test_a_stalled_step_is_accepted_within_accept_tol_and_refused_beyond_it():
     b = small_basis()
     t, f, h = b.tensors()

@@ -229,6 +229,30 @@ def test_a_shot_that_creases_a_joint_stops_at_that_frame(sphere, monkeypatch):
     assert len(seen) == 1 + 3 * (3 + 1)
 
 
+def test_an_extrapolation_that_fails_past_a_creased_frame_names_that_frame(sphere, monkeypatch):
+    basis, _ = sphere
+    real_shoot, real_creased = shooting.extrapolate, workflows.creased
+
+    def failing(*args, **kwargs):  # the real shot's first two frames, then a step that does not converge
+        frames = real_shoot(*args[:6], 2, max_substeps=1)[2:]
+        raise shooting.ShootingFailed("frame 3 of 4: a geodesic step did not converge", frames=frames)
+
+    monkeypatch.setattr(shooting, "extrapolate", failing)
+    with pytest.raises(shooting.ShootingFailed) as err:  # no creased frame: the shot's own message
+        workflows.extrapolate(basis, workflows.KnownCode(A), workflows.KnownCode(B), 4)
+    assert str(err.value) == "frame 3 of 4: a geodesic step did not converge" and err.value.frames.shape == (2, 4)
+    seen = []
+
+    def creased(template, faces, verts, **kwargs):  # the second frame reached is creased
+        seen.append(verts)
+        return len(seen) == 2 or real_creased(template, faces, verts, **kwargs)
+
+    monkeypatch.setattr(workflows, "creased", creased)
+    with pytest.raises(shooting.ShootingFailed, match=r"^frame 3 of 4: .*converge; frame 2 already creases a joint flat"):
+        workflows.extrapolate(basis, workflows.KnownCode(A), workflows.KnownCode(B), 4)
+    assert len(seen) == 2 and np.allclose(seen[0], basis.template + np.tensordot(err.value.frames[0], basis.fields, 1))
+
+
 def test_a_random_body_whose_faces_cross_is_replaced_and_counted(sphere, monkeypatch):
     from bareesa.mesh import self_intersections
 

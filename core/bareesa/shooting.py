@@ -373,9 +373,11 @@ def _march(stepper, start, n_frames, substeps, midpoint, monitor, max_substeps, 
                 remaining -= 1
                 continue
             if 2 * level > max_substeps:
+                fewer = f"ask for at most {k} frame{'s' if k > 1 else ''} or " if k else ""
                 raise ShootingFailed(f"frame {k + 1} of {n_frames}: {problem} even at 1/{level} of the frame step; "
                                      "the motion leaves the part of the latent space where the basis deforms "
-                                     "smoothly: ask for fewer frames or start from closer codes (a smaller velocity)")
+                                     f"smoothly: {fewer}start from closer codes (a smaller velocity)",
+                                     frames=np.array(frames).reshape(k, stepper.p))
             history, c = [midpoint(history[-2], history[-1]), history[-1]], None
             level, remaining, refinements = 2 * level, 2 * remaining, refinements + 1
             monitor.report(k / n_frames, f"frame {k + 1}/{n_frames}: step refined to 1/{level}")

@@ -272,9 +272,16 @@ def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=
     lo = _scan_share((a, b))
     ends = tuple(codes_of(basis, [a, b], options, monitor.scaled(0.0, lo), cancel))
     template, faces, fields = options.tensors(basis)
-    path, report = shooting.extrapolate(template, faces, fields, ends[0].code, ends[1].code, options.metric(basis),
-                                        n_new, callback=monitor.scaled(lo, 1.0), cancel=cancel, anchor=anchor,
-                                        with_report=True)
+    try:
+        path, report = shooting.extrapolate(template, faces, fields, ends[0].code, ends[1].code,
+                                            options.metric(basis), n_new, callback=monitor.scaled(lo, 1.0),
+                                            cancel=cancel, anchor=anchor, with_report=True)
+    except shooting.ShootingFailed as err:
+        first = first_creased(basis, err.frames)
+        if first is None:
+            raise
+        raise shooting.ShootingFailed(f"{err}; frame {first} already creases a joint flat: the motion has left "
+                                      "the bodies the basis can make", frames=err.frames) from None
     return Continuation(ends=ends, path=path, detail=_detail_along(ends, np.arange(len(path)), keep_detail),
                         shooting=report)
 
@@ -337,6 +344,17 @@ def creased(template, faces, verts, floor=CREASE_QUALITY):
     reference = triangle_quality(template, faces)
     ratio = np.divide(triangle_quality(verts, faces), reference, out=np.ones_like(reference), where=reference > 0)
     return bool(ratio.min() < floor)
+
+
+def first_creased(basis, codes):
+    """The number (1-based) of the first of codes (K, P) whose body is ``creased``, or None (also for
+    codes None)."""
+    if codes is None:
+        return None
+    for k, code in enumerate(codes):
+        if creased(basis.template, basis.faces, basis.template + np.tensordot(code, basis.fields, axes=1)):
+            return k + 1
+    return None
 
 
 def stored_distribution(basis):
