@@ -385,6 +385,24 @@ def test_keops_cpu_flags_are_set_only_while_pykeops_imports_and_never_over_the_u
         assert "CXXFLAGS" not in V.kernels.os.environ
 
 
+def test_keops_kernels_leave_the_process_ieee_and_agree_with_torch(keops_ok):
+    """KEOPS_CPU_FLAGS vectorise KeOps' sums without -ffast-math, which would link crtfastmath into each
+    kernel: loading one would then flush denormals to zero in the whole process (Blender's too). After the
+    truncated KeOps sums with gradients ran, a denormal survives; and they agree with torch's dense sums."""
+    v, f = mesh(3, requires_grad=True)
+    w, g = mesh(3, seed=1)
+    values, grads = [], []
+    for backend in ("truncated", "dense"):
+        d = varifold_distance(v, f, w + 0.05, g, SIGMA, backend=backend, cutoff=12 * SIGMA)
+        values.append(float(d.detach()))
+        grads.append(torch.autograd.grad(d, v)[0])
+    assert values[0] == pytest.approx(values[1], rel=1e-12)
+    assert float((grads[0] - grads[1]).norm() / grads[1].norm()) < 1e-12
+    tiny64 = np.finfo(np.float64).tiny
+    assert np.float64(tiny64) / np.float64(4.0) > 0  # not flushed to zero
+    assert float(torch.tensor(1e-40, dtype=torch.float32) * 0.5) > 0
+
+
 def test_grid_runs_looked_up_in_its_table_are_the_ones_binary_search_finds():
     """``Grid.ranges`` looks each cell's run of sorted points up in a table (``Grid.first``): the same
     clusters, runs and pair count as searching the sorted keys, for "i" points inside, around and far
