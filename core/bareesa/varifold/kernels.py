@@ -35,9 +35,9 @@ NO_KEOPS_ENV = "BAREESA_NO_KEOPS"
 #: vector math library (libmvec, within 4 ulp), which glibc's headers declare only under __FAST_MATH__.
 #: Not -ffast-math itself: GCC 12 then links crtfastmath into the kernel, which flushes denormals to zero
 #: in the whole process (Blender's too) once it loads, and assumes no NaN. The finest `human` level's
-#: self term took 33 against 57 ms a call, its middle level's 48 against 108 ms, the sums within 6e-15
-#: (relative) of before (bench/README, 2026-12-06). KeOps keeps its binaries per host name and per flags,
-#: so a cluster's nodes each build their own.
+#: self term took 30-33 against 49-51 ms a call, the sums within 6e-15 (relative) of IEEE's; the binned
+#: levels' feature sums do not vectorise (bench/README, 2026-12-06). KeOps keeps its binaries per host
+#: name and per flags, so a cluster's nodes each build their own.
 KEOPS_CPU_FLAGS = ("-march=native -fno-math-errno -fno-trapping-math -fno-signed-zeros -fassociative-math "
                    "-D__FAST_MATH__")
 
