@@ -315,10 +315,30 @@ def test_realign_moves_a_shifted_rescaled_scan_back_onto_the_surface(space):
     (fixed, score), = problem.realign(level, [space["alpha"]], off)
     error = lambda t: np.linalg.norm(t.apply(space["scan"]) - space["scan"], axis=1).mean()  # noqa: E731
     assert error(fixed) < 0.25 * error(off)
-    energy = problem.straight_energy(level, space["alpha"])
+    energy = problem.straight_energies(level, [space["alpha"]])[0]
     screened = lambda t: problem.screen_score(level, space["alpha"], t, energy)  # noqa: E731
     assert screened(fixed) < screened(off)
     assert math.isfinite(score) and score > 0
+
+
+def test_straight_energies_in_batches_are_each_straight_paths_energy(space, monkeypatch):
+    """``straight_energies`` sums STRAIGHT_BATCH paths a call (here 4, over 11 codes): each energy is the
+    path energy of its own straight path 0 -> code, and a code's energy does not depend on its batch."""
+    from bareesa import h2_metric
+    from bareesa.latent import decode
+
+    P = level_problem
+    monkeypatch.setattr(P, "STRAIGHT_BATCH", 4)
+    problem, level = _problem(space), space["basis"].schedule[1]
+    codes = space["alpha"] * np.random.default_rng(8).uniform(0.2, 1.5, size=(11, 1))
+    got = problem.straight_energies(level, codes)
+    ramp = torch.linspace(0, 1, level.steps + 1, dtype=torch.float64)[:, None]
+    for code, energy in zip(codes, got):
+        path = decode(problem.template, problem.fields, ramp * torch.as_tensor(code))
+        alone = float(h2_metric.path_energy(path, problem.faces, problem.metric, compute_dtype=P.ENERGY_DTYPE))
+        assert energy == pytest.approx(alone, rel=1e-12)
+    assert problem.straight_energies(level, codes[5:7]) == pytest.approx(got[5:7], rel=1e-12)
+    assert len(set(got)) == 11
 
 
 def test_realign_scores_all_codes_against_one_scan_loss_as_one_by_one(space, monkeypatch):

@@ -65,6 +65,9 @@ PREVIEW_EVERY = 5
 #: within 2e-7 of float64 in the energy and 2e-6 in its gradient on `human` paths, and 35 % faster
 #: (bench/README)
 ENERGY_DTYPE = torch.float32
+#: straight paths whose energies one call sums (``straight_energies``; the pose stage scores 32 and 7 codes):
+#: the per-face algebra's hundred-odd passes then run over K x steps meshes at once
+STRAIGHT_BATCH = 8
 
 
 def log_scale(l):
@@ -238,8 +241,9 @@ class RegistrationProblem:
         scan = BinnedMeasureLoss(*coarse_measure(moved - self.center, self.scan_faces, self.scan_weights_np, cell),
                                  sigma)
         eye = torch.eye(3, dtype=torch.float64)
+        energies = self.straight_energies(level, codes)
         out = []
-        for code in codes:
+        for code, energy in zip(codes, energies):
             self.monitor.check()
             with torch.no_grad():
                 verts = decode(self.template, self.fields, torch.as_tensor(code, dtype=self.dtype, device=self.device))
@@ -257,16 +261,20 @@ class RegistrationProblem:
             scale = math.exp(float(log_scale(torch.as_tensor(x[6]))))
             rot = axis_angle_rotation(x[:3])
             move = Similarity(rot, scale, x[3:6] + self.center - scale * rot @ self.center)
-            out.append((move.inverse().compose(transform), level.weight * gamma + self.straight_energy(level, code)))
+            out.append((move.inverse().compose(transform), level.weight * gamma + energy))
         return out
 
-    def straight_energy(self, level, code):
-        """Energy of the straight path 0 -> code in ``level.steps`` steps: (P,) -> float."""
+    def straight_energies(self, level, codes):
+        """Energies of the straight paths 0 -> code in ``level.steps`` steps: codes (K, P) -> [float] * K,
+        STRAIGHT_BATCH paths at a time (one path energy call instead of one a code)."""
+        codes = torch.as_tensor(np.asarray(codes, dtype=np.float64), dtype=self.dtype, device=self.device)
+        ramp = torch.linspace(0, 1, level.steps + 1, dtype=self.dtype, device=self.device)[:, None]
+        out = []
         with torch.no_grad():
-            code = torch.as_tensor(code, dtype=self.dtype, device=self.device)
-            ramp = torch.linspace(0, 1, level.steps + 1, dtype=self.dtype, device=self.device)[:, None]
-            return float(h2_metric.path_energy(decode(self.template, self.fields, ramp * code), self.faces,
-                                               self.metric, compute_dtype=ENERGY_DTYPE))
+            for s in range(0, codes.shape[0], STRAIGHT_BATCH):
+                paths = decode(self.template, self.fields, ramp * codes[s:s + STRAIGHT_BATCH, None, :])
+                out += h2_metric.path_energy(paths, self.faces, self.metric, compute_dtype=ENERGY_DTYPE).tolist()
+        return out
 
     def screen_score(self, level, code, transform, energy):
         """weight * (Gamma + landmark term) + energy of a solved path at ``level``'s sigma and weight,
