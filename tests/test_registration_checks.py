@@ -310,3 +310,18 @@ def test_surface_centroid_is_surface_moments_area_and_centroid_bit_for_bit():
         assert (area, *center) == (surface_moments(verts, faces, w)[0], *surface_moments(verts, faces, w)[1])
     with pytest.raises(MeshError, match="zero"):
         surface_centroid(verts, faces, np.zeros(len(faces)))
+
+
+def test_surface_moments_are_the_exact_integrals_of_a_rectangle_and_move_with_it():
+    """A 2 x 1 rectangle of two triangles: area 2, centroid its centre, second moment about it
+    diag(4, 1, 0) / 12 (int x^2 dA / A = a^2 / 12 per side a), exactly; rotated, the moment is R M R^T."""
+    from bareesa.registration.prealign import surface_moments
+    from bareesa.transforms import axis_angle_rotation
+    verts = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [2.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    area, center, second = surface_moments(verts, faces)
+    assert area == pytest.approx(2.0) and np.allclose(center, [1.0, 0.5, 0.0], atol=1e-15)
+    assert np.allclose(second, np.diag([4.0, 1.0, 0.0]) / 12, atol=1e-15)
+    rotation = axis_angle_rotation(np.array([0.3, -0.5, 0.2]))
+    moved = surface_moments(verts @ rotation.T + [1.0, 2.0, 3.0], faces)[2]
+    assert np.allclose(moved, rotation @ second @ rotation.T, atol=1e-14)
