@@ -101,22 +101,26 @@ def test_landmark_alignment_recovers_a_similarity_and_refuses_collinear_points()
 
 
 def test_three_landmarks_fix_the_capsule_that_registers_upside_down_without_them():
-    """The straight capsule turned over fits its surface equally well upside down (its ends swapped);
-    its three landmarks (two ends, the seam) make it register the right way round."""
+    """The straight capsule turned over fits its surface equally well upside down (its ends swapped):
+    without landmarks which way a scan lands is a toss-up decided by rounding (the scan of seed 1 landed
+    upside down until the rotations' last digits changed, then right; seeds 2 and 3 land upside down), so
+    the control asks only that some land wrong; its three landmarks (two ends, the seam) make every one
+    register the right way round."""
     basis = load_basis("deformables")
     truth = basis.template
-    sv, sf, info = simulate_scan(truth, basis.faces, seed=1, holes=0, scale=0.3, resolution=0.08)
-    truth_scan = apply_similarity(info, truth)
-    rng = np.random.default_rng(0)
     schedule = (Level(0.25, 1e1, 1, 20), Level(0.08, 1e4, 1, 20))
-    errors = {}
-    for use in (False, True):
-        marks = [(i, truth_scan[i] + rng.normal(scale=0.01 * info["scale"], size=3))  # placed to ~1 % of the length
-                 for i in basis.landmarks.values()]
-        res = register(basis, sv, sf, landmarks=marks if use else None, schedule=schedule, pose_candidates=None)
-        errors[use] = evaluation.vertex_error(res.vertices, truth_scan)["mean"] / info["scale"] / basis.scale
-    # mean vertex error as a share of the length: the control (this scan's turn) lands the labels wrong
-    assert errors[True] < 0.02 and errors[False] > 0.1, errors
+    errors = {False: [], True: []}
+    for seed in (1, 2, 3):
+        sv, sf, info = simulate_scan(truth, basis.faces, seed=seed, holes=0, scale=0.3, resolution=0.08)
+        truth_scan = apply_similarity(info, truth)
+        rng = np.random.default_rng(0)
+        for use in (False, True):
+            marks = [(i, truth_scan[i] + rng.normal(scale=0.01 * info["scale"], size=3))  # placed to ~1 % of the length
+                     for i in basis.landmarks.values()]
+            res = register(basis, sv, sf, landmarks=marks if use else None, schedule=schedule, pose_candidates=None)
+            errors[use].append(evaluation.vertex_error(res.vertices, truth_scan)["mean"] / info["scale"] / basis.scale)
+    # mean vertex error as a share of the length: the controls land the labels wrong on some scans
+    assert max(errors[True]) < 0.02 and max(errors[False]) > 0.1, errors
 
 
 def test_cli_register_reads_named_landmarks_and_build_basis_stores_a_landmark_file(capsys, tmp_path):
