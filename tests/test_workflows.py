@@ -248,7 +248,8 @@ def test_an_extrapolation_that_fails_past_a_creased_frame_names_that_frame(spher
         return len(seen) == 2 or real_creased(template, faces, verts, **kwargs)
 
     monkeypatch.setattr(workflows, "creased", creased)
-    with pytest.raises(shooting.ShootingFailed, match=r"^frame 3 of 4: .*converge; frame 2 already creases a joint flat"):
+    named = r"^frame 3 of 4: .*converge; frame 2 already creases a joint flat"
+    with pytest.raises(shooting.ShootingFailed, match=named):
         workflows.extrapolate(basis, workflows.KnownCode(A), workflows.KnownCode(B), 4)
     assert len(seen) == 2 and np.allclose(seen[0], basis.template + np.tensordot(err.value.frames[0], basis.fields, 1))
 
