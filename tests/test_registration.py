@@ -439,9 +439,39 @@ def test_pose_stage_realigns_only_the_best_centroid_matched_candidates_and_still
     problem.realign = spy
     path, transform, _ = poses.try_poses(problem, basis, basis.schedule[1], basis.schedule[-1], np.zeros((2, 6)),
                                          Similarity(), candidates, (0.0, 1.0), "test")
-    assert calls[0] == (11, 0)  # every candidate scored once, centroid matched
+    assert calls[0] == (12, 0)  # the current code and every candidate scored once, centroid matched
     assert [n for n, it in calls if it > 0] == [3]  # the current code and the 2 best re-aligned
     assert np.linalg.norm(path[-1] - alpha) < 0.2 * np.linalg.norm(alpha)
+
+
+@pytest.mark.parametrize("skip", [poses.POSE_SKIP, math.inf])
+def test_pose_stage_is_skipped_when_the_current_code_fits_far_better_than_every_candidate(space, monkeypatch, skip):
+    # the current path ends at alpha* (the scan's own code) and every candidate is far: only the cheap
+    # centroid-matched scores are taken, and the path comes back as it was; with no skip (inf) the same
+    # stage re-aligns the current code and the best candidates
+    monkeypatch.setattr(poses, "POSE_SKIP", skip)
+    monkeypatch.setattr(poses, "POSE_ITER", 2)
+    basis, alpha = space["basis"], space["alpha"]
+    candidates = 3 * np.random.default_rng(7).normal(size=(6, 6))
+    problem = _problem(space)
+    calls, solved = [], []
+    realign, solve = problem.realign, problem.solve_level
+
+    def spy(level, codes, transform, max_iter=15):
+        calls.append((len(codes), max_iter))
+        return realign(level, codes, transform, max_iter)
+
+    problem.realign = spy
+    problem.solve_level = lambda *args, **kwargs: solved.append(1) or solve(*args, **kwargs)
+    start = np.stack([np.zeros(6), alpha])
+    path, transform, share = poses.try_poses(problem, basis, basis.schedule[1], basis.schedule[-1], start,
+                                             Similarity(), candidates, (0.0, 1.0), "test")
+    assert calls[0] == (7, 0)
+    if skip == math.inf:
+        assert any(it > 0 for _, it in calls[1:])
+        return
+    assert calls == [(7, 0)] and not solved and share == 0.0
+    assert path is start and np.array_equal(transform.apply(space["scan"]), space["scan"])
 
 
 def test_pose_candidates_auto_without_prototypes_changes_nothing_and_bad_ones_are_refused(space, aligned):

@@ -27,6 +27,12 @@ POSE_TIE = 2.0
 #: ... only the POSE_REALIGN candidates that score best with their centroid matched to the scan's (no
 #: iterations) are re-aligned: re-aligning each of the human basis' 32 prototypes cost ~1.5 s of CPU
 POSE_REALIGN = 6
+#: ... and none is when every candidate's centroid-matched score is above POSE_SKIP x the current code's
+#: (scored alike): a candidate is picked only within POSE_TIE of the current code's re-aligned score, and
+#: on 40 held-out `human` scans re-alignment lowered the best candidate's score to no less than 0.61 x its
+#: centroid-matched one and the current code's to 0.59-0.98 x, so none above 3.2 x could have been picked
+#: (none above 2.1 x was); 4 leaves a margin and skipped the re-alignments on 14 of the 40 (bench/README)
+POSE_SKIP = 4.0
 POSE_ITER = 40
 POSE_WEIGHT_GAIN = 10.0
 #: ... the short solves run on a one-step path (the end code is what the next level's sigma judges; the
@@ -80,14 +86,18 @@ def try_poses(problem, basis, level, judge, path, transform, candidates, progres
     solve, or ``path`` when no candidate is close.
 
     Every start (the current end code and the POSE_REALIGN candidates that score best with their
-    centroid matched to the scan's) is first re-aligned to the scan on its own (``CoarseVarifold`` at
-    the level's sigma, from the current alignment): the pre-alignment matched the scan's centroid and
-    RMS radius to the template's, which a raised arm shifts by several cm.
+    centroid matched to the scan's; none when they all score above POSE_SKIP x the current code) is
+    first re-aligned to the scan on its own (``CoarseVarifold`` at the level's sigma, from the current
+    alignment): the pre-alignment matched the scan's centroid and RMS radius to the template's, which a
+    raised arm shifts by several cm.
     """
     code = path[-1]
     level = replace(level, weight=level.weight * POSE_WEIGHT_GAIN)
     starts = pose_starts(basis, candidates, code)
-    quick = np.array([score for _, score in problem.realign(level, starts, transform, max_iter=0)])
+    current, *quick = [score for _, score in problem.realign(level, [code, *starts], transform, max_iter=0)]
+    quick = np.array(quick)
+    if quick.min() > POSE_SKIP * current:  # the current code fits far better than any candidate could
+        return path, transform, 0.0
     keep = np.argsort(quick)[:POSE_REALIGN]
     starts = starts[keep]
     aligned, scores = zip(*problem.realign(level, [code, *starts], transform))
