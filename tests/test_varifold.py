@@ -68,6 +68,44 @@ def test_backends_agree_with_dense_values_and_gradients(backend, kernel, use_bac
         assert out[3]["pairs"] < 0.5 * out[3]["all_pairs"], "truncation removed no pairs"
 
 
+@pytest.mark.parametrize("backend", ["truncated", "truncated-torch"])
+def test_a_loss_keeps_its_ranges_while_the_source_moves_less_than_the_margin(backend, use_backend, monkeypatch):
+    # a source moved by half the margin: no new ranges, and the value and gradient a fresh loss (new ranges)
+    # gives; moved by twice the margin: new ranges; both within the truncation bound of dense
+    from bareesa.varifold import backends
+
+    v, f = mesh(3, 0)
+    w, g = mesh(2, 1)
+    cut = 2.5 * SIGMA
+    margin = backends.RANGES_MARGIN * cut
+    found = []
+    ranges = backends.Grid.ranges
+    monkeypatch.setattr(backends.Grid, "ranges", lambda *a, **k: found.append(1) or ranges(*a, **k))
+    loss = VarifoldLoss(w, g, SIGMA, backend=use_backend(backend), cutoff=cut)
+    loss(v, f)
+    first = len(found)
+    assert first == 3  # the target's self term (once), the source's self and cross terms
+    direction = torch.tensor(np.random.default_rng(0).normal(size=v.shape))
+    direction /= direction.norm(dim=1).max()
+    A = float(V.varifold_measure(v, f)[2].sum() + V.varifold_measure(w, g)[2].sum())
+    for shift, new in ((0.5 * margin, 0), (2.0 * margin, 2)):
+        moved = (v + shift * direction).requires_grad_(True)
+        value = loss(moved, f)
+        assert len(found) - first == new
+        (grad,) = torch.autograd.grad(value, moved)
+        fresh_moved = moved.detach().clone().requires_grad_(True)
+        fresh = VarifoldLoss(w, g, SIGMA, backend=use_backend(backend), cutoff=cut)(fresh_moved, f)
+        (fresh_grad,) = torch.autograd.grad(fresh, fresh_moved)
+        dense_moved = moved.detach().clone().requires_grad_(True)
+        dense = varifold_distance(dense_moved, f, w, g, SIGMA, backend="dense")
+        (dense_grad,) = torch.autograd.grad(dense, dense_moved)
+        # kept and fresh ranges differ only in pairs beyond the cutoff: less than the truncation's own error
+        assert abs(float(value - fresh)) <= 1e-5 * abs(float(fresh))
+        assert float((grad - fresh_grad).norm()) <= 0.5 * float((fresh_grad - dense_grad).norm())
+        assert abs(float(value - dense)) <= np.exp(-(cut / SIGMA) ** 2) * A ** 2
+        first = len(found)
+
+
 def test_truncation_error_within_documented_bound():
     v, f = mesh(3, 0)
     w, g = mesh(2, 1)

@@ -49,11 +49,13 @@ Backends (same maths, different evaluation strategies, as in geomloss)
   (binned measures: also once per feature dimension).
 * ``"truncated"``: ignores the pairs with |x - x'| >= cutoff. The second mesh is sorted into a
   uniform grid of cubic cells (size cutoff/4, cached by ``VarifoldLoss`` for the target); the
-  first mesh is sorted into coarser clusters (size cutoff/2, rebuilt at every call since
-  vertices move). For each cluster, the cells whose box lies within ``cutoff`` of the
-  cluster's bounding box form at most one contiguous run of the sorted second mesh per (y, z)
-  row of cells; these runs are the block-sparse ``ranges`` of a KeOps reduction (CPU or CUDA).
-  Without pykeops the same runs are evaluated as padded torch tiles (slower on CPU).
+  first mesh is sorted into coarser clusters (size cutoff/2). For each cluster, the cells whose
+  box lies within ``ranges_reach(cutoff)`` (the cutoff and a margin of 2 x RANGES_MARGIN x cutoff)
+  of the cluster's bounding box form at most one contiguous run of the sorted second mesh per
+  (y, z) row of cells; these runs are the block-sparse ``ranges`` of a KeOps reduction (CPU or
+  CUDA). A loss keeps each moving term's clusters and runs (``backends.KeptRanges``) until a vertex
+  has moved more than RANGES_MARGIN x cutoff. Without pykeops the same runs are evaluated as padded
+  torch tiles (slower on CPU).
 
 Truncation error bound: every ignored pair has spatial kernel value exp(-|x-x'|^2/sigma^2) <=
 tol := exp(-cutoff^2/sigma^2) and |kappa| <= 1 for unit normals, so for each inner product

@@ -14,6 +14,15 @@ DENSE_CHUNK_BYTES = 256 * 2**20
 CELL_FRACTION = 0.25      # grid cell size of the "j" measure, in units of the cutoff
 CLUSTER_FRACTION = 0.5    # cluster size of the "i" measure, in units of the cutoff
 TABLE_CELLS_PER_POINT = 16  # a grid keeps a table of where each cell's points begin up to this many cells a point
+#: Block-sparse ranges reach RANGES_MARGIN x the cutoff beyond it on either side (every term alike, so that a
+#: measure's distance to itself stays zero), and a term's ``KeptRanges`` are reused while no point has moved
+#: more than that margin since they were found
+RANGES_MARGIN = 0.025
+
+
+def ranges_reach(cutoff):
+    """How far block-sparse ranges reach for a cutoff: cutoff (1 + 2 RANGES_MARGIN)."""
+    return cutoff * (1 + 2 * RANGES_MARGIN)
 
 
 # --------------------------------------------------------------------------- kinds of measures
@@ -249,6 +258,40 @@ class Grid:
         return perm_i, ranges_i, slices, runs, owner, pairs
 
 
+def _moved(x, x0):
+    """The largest distance a point moved: x, x0 (N, 3) -> float."""
+    return float(((x - x0) ** 2).sum(1).max()) ** 0.5
+
+
+class KeptRanges:
+    """The block-sparse ranges of one term (a loss' self or cross term), kept across calls.
+
+    They reach RANGES_MARGIN x cutoff beyond it on either side (``ranges_reach``) and are reused while no
+    point of either side has moved more than that margin since: every pair within the cutoff is still
+    among them. The pairs summed are then the same from call to call while the surface moves a little (an
+    optimiser's late steps and line searches), instead of changing with every call's clusters; finding
+    the ranges cost as much as a third of a finest-level evaluation.
+    """
+
+    def __init__(self):
+        self._kept = None
+
+    def get(self, x, y, cutoff, grid=None):
+        """(grid of y, ``Grid.ranges``' output) for the i points x (N, 3) and the j points y (M, 3):
+        ``grid`` is y's when y is fixed (kept by the caller), None when y moves (a grid is then kept here)."""
+        margin = RANGES_MARGIN * cutoff
+        if self._kept is not None:
+            x0, y0, given, kept_cutoff, kept_grid, out = self._kept
+            if (given is grid and kept_cutoff == cutoff and x0.shape == x.shape and _moved(x, x0) <= margin
+                    and (grid is not None or (y0.shape == y.shape and _moved(y, y0) <= margin))):
+                return kept_grid, out
+        moving = grid is None
+        kept_grid = Grid(y, cutoff) if moving else grid
+        out = kept_grid.ranges(x, ranges_reach(cutoff), CLUSTER_FRACTION * cutoff)
+        self._kept = (x.clone(), y.clone() if moving else None, grid, cutoff, kept_grid, out)
+        return kept_grid, out
+
+
 def _truncated_tiles(xs, us, ys, vs, g, kind, grad, ranges_i, runs, owner, ti=16, tj=512):
     """Torch fallback of the block-sparse sums: per cluster, its runs are concatenated into one
     list of j indices, and (cluster rows x list) is cut into padded (ti x tj) tiles."""
@@ -296,9 +339,9 @@ class Engine:
         self.use_keops = keops_available() if use_keops is None else use_keops
         self.pairs = 0            # pairs evaluated by the last calls (reset by the caller)
 
-    def sums(self, x, u, y, v, grad, grid=None):
+    def sums(self, x, u, y, v, grad, grid=None, kept=None):
         """Pair sums (N, width) of i = (x (N, 3), u (N, D)) against j = (y (M, 3), v (tuple of
-        (M, ...))); grid: cached Grid of y."""
+        (M, ...))); grid: cached Grid of y; kept: the term's ``KeptRanges`` (truncated), or None."""
         x, u, y = x.detach(), u.detach(), y.detach()
         v = tuple(t.detach() for t in v)
         if self.backend == "dense":
@@ -307,9 +350,12 @@ class Engine:
         if self.backend == "keops":
             self.pairs += x.shape[0] * y.shape[0]
             return _keops_sums(x, u, y, v, self.g, self.kind, grad)
-        grid = Grid(y, self.cutoff) if grid is None else grid
-        perm_i, ranges_i, slices, runs, owner, pairs = grid.ranges(
-            x, self.cutoff, CLUSTER_FRACTION * self.cutoff)
+        if kept is not None:
+            grid, (perm_i, ranges_i, slices, runs, owner, pairs) = kept.get(x, y, self.cutoff, grid)
+        else:
+            grid = Grid(y, self.cutoff) if grid is None else grid
+            perm_i, ranges_i, slices, runs, owner, pairs = grid.ranges(
+                x, ranges_reach(self.cutoff), CLUSTER_FRACTION * self.cutoff)
         self.pairs += pairs
         xs, us = x[perm_i], u[perm_i]
         ys, vs = y[grid.perm], tuple(t[grid.perm] for t in v)

@@ -7,7 +7,7 @@ from torch.autograd.function import once_differentiable
 
 from ..errors import InputError
 from ..geometry import face_centers
-from .backends import Engine, FacePairs, FeaturePairs, Grid
+from .backends import Engine, FacePairs, FeaturePairs, Grid, KeptRanges
 from .kernels import check_options, resolve_backend
 from .measure import binned_measure, cell_features, cell_groups, check_mesh, group_features, varifold_measure
 
@@ -16,18 +16,22 @@ TARGET_BIN_GAIN = 0.75    # VarifoldLoss bins its target only when that leaves a
 BIN_CELL = 0.4
 
 
+#: arguments of ``_Inner.apply`` before the measures
+_LEAD = 5
+
+
 class _Inner(torch.autograd.Function):
     """<q, q'> of two measures (x, u, ...) of the engine's kind, with gradients from the fused pair
-    sums (the self term <q, q> when ``symmetric``)."""
+    sums (the self term <q, q> when ``symmetric``); kept: the term's ``KeptRanges`` or None."""
 
     @staticmethod
-    def forward(ctx, engine, grid_j, grid_i, symmetric, *measures):
+    def forward(ctx, engine, grid_j, grid_i, symmetric, kept, *measures):
         k = len(measures) // 2
         q, qt = measures[:k], measures[k:]
-        need_i = any(ctx.needs_input_grad[4:4 + k])
-        need_j = any(ctx.needs_input_grad[4 + k:]) and not symmetric
+        need_i = any(ctx.needs_input_grad[_LEAD:_LEAD + k])
+        need_j = any(ctx.needs_input_grad[_LEAD + k:]) and not symmetric
         kind = engine.kind
-        F = engine.sums(q[0], q[1], qt[0], qt[1:], need_i, grid_j)
+        F = engine.sums(q[0], q[1], qt[0], qt[1:], need_i, grid_j, kept)
         value = kind.value(q[1:], F)
         grads = []
         if need_i:  # d/dq <q,q> = 2 x (i-side derivative), k symmetric
@@ -43,12 +47,12 @@ class _Inner(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, go):
         grads, k = list(ctx.saved_tensors), ctx.k
-        out = [None] * (4 + 2 * k)
+        out = [None] * (_LEAD + 2 * k)
         if ctx.need[0]:
-            out[4:4 + k] = [go * t for t in grads[:k]]
+            out[_LEAD:_LEAD + k] = [go * t for t in grads[:k]]
             grads = grads[k:]
         if ctx.need[1]:
-            out[4 + k:] = [go * t for t in grads[:k]]
+            out[_LEAD + k:] = [go * t for t in grads[:k]]
         return tuple(out)
 
 
@@ -58,7 +62,7 @@ def varifold_inner(centers, normals, weights, other_centers, other_normals, othe
     sigma = check_options(sigma, kernel, backend, cutoff)
     backend = resolve_backend(backend, centers, other_centers, sigma, cutoff)
     engine = Engine(backend, sigma, FacePairs(kernel), cutoff)
-    return _Inner.apply(engine, None, None, False, centers, normals, weights,
+    return _Inner.apply(engine, None, None, False, None, centers, normals, weights,
                         other_centers, other_normals, other_weights)
 
 
@@ -69,6 +73,7 @@ class _FixedTarget:
         self._measure, self.target_requires_grad = measure, requires_grad
         self._grid = None
         self._self = {}
+        self._kept = {"self": KeptRanges(), "cross": KeptRanges()}  # the moving source's terms' ranges
         self.stats = {}
 
     def _target_grid(self, engine):
@@ -87,18 +92,19 @@ class _FixedTarget:
                 self._self[backend] = self._term(engine, target, target, True, grid)
         return self._self[backend]
 
-    def _term(self, engine, q, qt, symmetric, grid_j=None):
-        if engine.backend == "truncated" and grid_j is None:
+    def _term(self, engine, q, qt, symmetric, grid_j=None, kept=None):
+        if engine.backend == "truncated" and grid_j is None and kept is None:
             grid_j = Grid(qt[0], engine.cutoff)
         if symmetric:
             qt = tuple(t.detach() for t in qt)
-        return _Inner.apply(engine, grid_j, None, symmetric, *q, *qt)
+        return _Inner.apply(engine, grid_j, None, symmetric, kept, *q, *qt)
 
     def _distance(self, engine, q, target):
         """<q, q> - 2 <q, q'> + <q', q'> -> scalar; records ``stats``."""
         grid_t = self._target_grid(engine) if engine.backend == "truncated" else None
-        self_s = self._term(engine, q, q, True)
-        cross = self._term(engine, q, target, False, grid_t)
+        self_s = self._term(engine, q, q, True, kept=self._kept["self"])
+        cross = self._term(engine, q, target, False, grid_t,
+                           kept=None if self.target_requires_grad else self._kept["cross"])
         pairs = engine.pairs
         self_t = self._target_self(engine, target)
         n, nt = q[0].shape[0], target[0].shape[0]
