@@ -296,6 +296,22 @@ def _problem(space):
                                  "cpu", Monitor("test"))
 
 
+def test_a_level_reports_the_energy_and_varifold_of_the_point_it_returns(space):
+    # the report's terms are those of the returned path and alignment (kept from the optimiser's own
+    # evaluation of that point): weight * varifold + energy is the objective it returns, and the energy
+    # is the returned path's
+    from bareesa import h2_metric
+    from bareesa.latent import decode
+
+    problem, level = _problem(space), space["basis"].schedule[-1]
+    path, _, report = problem.solve_level(level, np.zeros((2, 6)), Similarity(), (0.0, 1.0), "test")
+    assert report["iterations"] > 0
+    assert report["objective"] == pytest.approx(level.weight * report["varifold"] + report["energy"], rel=1e-12)
+    meshes = decode(problem.template, problem.fields, torch.as_tensor(path))
+    assert report["energy"] == pytest.approx(float(h2_metric.path_energy(meshes, problem.faces, problem.metric)),
+                                             rel=1e-5)
+
+
 def test_pose_starts_take_only_the_pose_group_of_each_candidate(space):
     from dataclasses import replace
 

@@ -368,9 +368,10 @@ class RegistrationProblem:
         losses = [loss for loss, _ in losses]
         if self.marks is not None:
             lm_pts = self.landmark_points(transform)
-        terms = {}
+        terms = {}  # the energy and varifold of every point evaluated, by the point's bytes
 
         def objective(x):
+            key = x.detach().cpu().numpy().tobytes()
             x = x.to(dtype=dtype, device=device)
             alpha = variables.path(x[:steps * p_dim].reshape(steps, p_dim))
             meshes = decode(self.template, self.fields, alpha)
@@ -385,7 +386,7 @@ class RegistrationProblem:
             fit = gamma
             if self.marks is not None:
                 fit = fit + self.landmark_term(final, lm_pts)
-            terms.update(energy=energy, gamma=gamma)
+            terms[key] = (float(energy.detach()), float(gamma.detach()))
             return level.weight * fit + energy
 
         whiten_end = end_whitening(self.gram, self.template_np, self.faces_np, self.fields_np, level.weight, path[-1])
@@ -413,11 +414,13 @@ class RegistrationProblem:
                                        plateau=(LEVEL_PLATEAU[0], level.plateau or LEVEL_PLATEAU[1]),
                                        memory=LEVEL_MEMORY,
                                        preview=(PREVIEW_EVERY, result_so_far) if self.monitor.wants_preview else None)
-        with torch.no_grad():
-            objective(torch.from_numpy(x))
+        if x.tobytes() not in terms:  # the optimiser returns a point it evaluated: this is only a safeguard
+            with torch.no_grad():
+                objective(torch.from_numpy(x))
+        energy, gamma = terms[x.tobytes()]
         path, transform = unpack(x)
         return path, transform, {"sigma": float(sigma), "weight": float(level.weight), "steps": int(steps),
-                                 "iterations": int(nit), "energy": float(terms["energy"]),
-                                 "varifold": float(terms["gamma"]), "objective": float(value),
+                                 "iterations": int(nit), "energy": energy,
+                                 "varifold": gamma, "objective": float(value),
                                  "binned": binned, "kernel": kernel, "turned_faces": turned,
                                  "seconds": time.perf_counter() - t0}
