@@ -41,6 +41,9 @@ def _skew(v):
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
+_SKEW_BASIS = np.stack([_skew(row) for row in np.eye(3)])  # dK/dw_i, (3, 3, 3)
+
+
 def rodrigues(w):
     """exp of the skew matrix K of w (3,) float64 array, R = I + a K + b K^2 (a = sin(r) / r,
     b = (1 - cos r) / r^2, r = |w|), and its derivative: -> R (3, 3), dR/dw (3, 3, 3) with [i] = dR/dw_i."""
@@ -58,7 +61,7 @@ def rodrigues(w):
     k = _skew(w)
     k2 = k @ k
     rotation = np.eye(3) + a * k + b * k2
-    e = np.stack([_skew(row) for row in np.eye(3)])  # dK/dw_i
+    e = _SKEW_BASIS
     grad = a * e + b * (e @ k + k @ e) + 2 * w[:, None, None] * (da * k + db * k2)
     return rotation, grad
 
