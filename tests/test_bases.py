@@ -62,6 +62,41 @@ def test_the_human_carries_distinct_pose_prototypes_for_registration():
     assert 0.005 < np.median(moves) < 0.3
 
 
+def test_the_human_carries_its_prepared_constants_as_computed_from_its_stored_fields():
+    # what registration.prepare_basis computes in a process that lacks them (~0.3 s a registration):
+    # python -m bases.build --derived stored them from the very fields the file holds
+    from bareesa.registration import PREPARED_EXTRAS, prepare_basis
+
+    b = load_basis("human")
+    stored = {k: b.extras.pop(k) for k in PREPARED_EXTRAS}
+    prepare_basis(b)
+    for key, value in stored.items():
+        assert value.shape == b.extras[key].shape
+        assert np.allclose(value, b.extras[key], rtol=1e-10, atol=1e-12 * np.abs(value).max()), key
+    assert "derived" in b.provenance
+
+
+def test_derived_constants_are_stored_in_a_built_basis_file_and_only_where_it_has_any(tmp_path):
+    import importlib
+
+    from bareesa import basis_io, synthetic
+    from bareesa.h2_metric import H2Weights
+    from bareesa.registration import PREPARED_EXTRAS
+
+    store_derived = importlib.import_module("bases.build.__main__").store_derived
+    plain, _ = synthetic.smooth_sphere_basis(subdivisions=1, n_fields=3)
+    basis_io.save_basis(tmp_path / "plain.npz", plain)
+    before = (tmp_path / "plain.npz").read_bytes()
+    assert store_derived(tmp_path / "plain.npz") == [] and (tmp_path / "plain.npz").read_bytes() == before
+    plain.shape_weights = H2Weights(2, 1, 1, 1, 1, 5)
+    plain.extras["pose_prototypes"] = np.eye(3)[:2]
+    basis_io.save_basis(tmp_path / "full.npz", plain)
+    assert sorted(store_derived(tmp_path / "full.npz")) == sorted(PREPARED_EXTRAS)
+    loaded = basis_io.load_basis(tmp_path / "full.npz")
+    assert set(PREPARED_EXTRAS) <= set(loaded.extras) and "derived" in loaded.provenance
+    assert "derived" in json.loads((tmp_path / "full.json").read_text())["provenance"]
+
+
 def test_the_default_basis_is_the_bundled_human():
     from bareesa.basis_io import DEFAULT_BASIS, resolve_basis_path
 

@@ -241,6 +241,15 @@ def test_shape_weights_are_saved_and_registration_and_random_bodies_use_them(tmp
     other = loaded.template_metric(loaded.shape_weights)
     assert not np.allclose(other, g) and loaded.template_metric() is loaded.extras["template_metric"]
     assert loaded.template_metric(loaded.shape_weights) is other  # kept for the next registration
+    # ... in the extras, so a basis saved afterwards carries it, and a process that loads it computes neither
+    assert loaded.extras["shape_template_metric"] is other
+    basis_io.save_basis(tmp_path / "c.npz", loaded)
+    again = basis_io.load_basis(tmp_path / "c.npz")
+    with monkeypatch.context() as patch:
+        patch.setattr(latent.h2_metric, "assembled_metric_matrix", lambda *a, **k: pytest.fail("recomputed"))
+        assert np.array_equal(again.template_metric(again.shape_weights), other)
+        assert np.array_equal(again.template_metric(), g)
+    assert not np.allclose(again.template_metric((3, 1, 1, 1, 1, 5)), other)  # other weights: computed
 
     class Seen(Exception):
         pass

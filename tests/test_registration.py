@@ -445,18 +445,23 @@ def test_pose_stage_realigns_only_the_best_centroid_matched_candidates_and_still
     rng = np.random.default_rng(5)
     candidates = np.concatenate([2 * rng.normal(size=(10, 6)), [alpha + 0.05 * rng.normal(size=6)]])
     problem = _problem(space)
-    calls = []
-    realign = problem.realign
+    calls, summed = [], []
+    realign, straight = problem.realign, problem.straight_energies
 
-    def spy(level, codes, transform, max_iter=15):
+    def spy(level, codes, transform, max_iter=15, energies=None):
         calls.append((len(codes), max_iter))
-        return realign(level, codes, transform, max_iter)
+        # the straight paths' energies are summed once for the stage and handed to every re-alignment
+        assert energies is not None and len(energies) == len(codes)
+        assert np.allclose(energies, straight(level, codes), rtol=1e-12, atol=0)
+        return realign(level, codes, transform, max_iter, energies)
 
     problem.realign = spy
+    problem.straight_energies = lambda level, codes: summed.append(len(codes)) or straight(level, codes)
     path, transform, _ = poses.try_poses(problem, basis, basis.schedule[1], basis.schedule[-1], np.zeros((2, 6)),
                                          Similarity(), candidates, (0.0, 1.0), "test")
     assert calls[0] == (12, 0)  # the current code and every candidate scored once, centroid matched
     assert [n for n, it in calls if it > 0] == [3]  # the current code and the 2 best re-aligned
+    assert summed == [12]
     assert np.linalg.norm(path[-1] - alpha) < 0.2 * np.linalg.norm(alpha)
 
 
@@ -473,9 +478,9 @@ def test_pose_stage_is_skipped_when_the_current_code_fits_far_better_than_every_
     calls, solved = [], []
     realign, solve = problem.realign, problem.solve_level
 
-    def spy(level, codes, transform, max_iter=15):
+    def spy(level, codes, transform, max_iter=15, energies=None):
         calls.append((len(codes), max_iter))
-        return realign(level, codes, transform, max_iter)
+        return realign(level, codes, transform, max_iter, energies)
 
     problem.realign = spy
     problem.solve_level = lambda *args, **kwargs: solved.append(1) or solve(*args, **kwargs)
@@ -488,6 +493,40 @@ def test_pose_stage_is_skipped_when_the_current_code_fits_far_better_than_every_
         return
     assert calls == [(7, 0)] and not solved and share == 0.0
     assert path is start and np.array_equal(transform.apply(space["scan"]), space["scan"])
+
+
+def test_a_prepared_basis_carries_its_constants_and_prealigns_exactly_as_one_computed_afresh(space, tmp_path,
+                                                                                            monkeypatch):
+    # prepare_basis keeps the shape weights' template metric and the pose prototypes' surface moments in the
+    # extras; saved and loaded, registration uses them as stored, with the very candidates it computes
+    # without them; moments stored for other prototypes are not used
+    from bareesa import basis_io, h2_metric
+    from bareesa.registration import multiscale, prealign
+
+    basis = replace(space["basis"], extras=dict(space["basis"].extras), shape_weights=H2Weights(2, 1, 1, 1, 1, 5))
+    protos = 0.5 * np.random.default_rng(8).normal(size=(5, 6))
+    basis.extras["pose_prototypes"] = protos
+    refs = basis.template + np.tensordot(protos, basis.fields, axes=1)
+    registration.prepare_basis(basis)
+    basis_io.save_basis(tmp_path / "p.npz", basis)
+    loaded = basis_io.load_basis(tmp_path / "p.npz")
+    assert set(registration.PREPARED_EXTRAS) <= set(loaded.extras)
+    table = loaded.extras[multiscale.PROTOTYPE_MOMENTS]
+    assert np.array_equal(table, prealign.moment_table(refs, basis.faces)) and table.shape == (5, 12)
+    scan = to_scan_frame(space, space["scan"])
+    with monkeypatch.context() as patch:
+        patch.setattr(multiscale, "moment_table", lambda *a: pytest.fail("moments recomputed"))
+        patch.setattr(h2_metric, "assembled_metric_matrix", lambda *a, **k: pytest.fail("metric recomputed"))
+        assert multiscale._reference_moments(loaded, protos, refs) is table
+        assert np.array_equal(loaded.template_metric(loaded.shape_weights), basis.template_metric(basis.shape_weights))
+    stored = prealign.prealign_candidates(basis.template, basis.faces, scan, space["faces"], references=refs,
+                                          reference_moments=table)
+    fresh = prealign.prealign_candidates(basis.template, basis.faces, scan, space["faces"], references=refs)
+    assert [(c.score, c.reference) for c in stored] == [(c.score, c.reference) for c in fresh]
+    assert all(np.array_equal(a.transform.apply(scan), b.transform.apply(scan)) for a, b in zip(stored, fresh))
+    other = protos[::-1].copy()
+    moments = multiscale._reference_moments(loaded, other, refs[::-1])
+    assert np.array_equal(moments, table[::-1]) and loaded.extras[multiscale.PROTOTYPE_MOMENTS] is table
 
 
 def test_pose_candidates_auto_without_prototypes_changes_nothing_and_bad_ones_are_refused(space, aligned):

@@ -2,7 +2,9 @@
 
 Deterministic (fixed seeds, single-threaded torch); needs the ``bpy`` module and,
 for ``human``, the Anny body model (``pip install -e ".[bases]"``; Anny's first
-model build takes ~3 min and writes ~0.8 GB to ``ANNY_CACHE_DIR``).
+model build takes ~3 min and writes ~0.8 GB to ``ANNY_CACHE_DIR``). Each written
+basis then gets its derived constants (``store_derived``); ``--derived`` recomputes
+only those, in the bases already in the output folder.
 """
 
 import argparse
@@ -25,6 +27,28 @@ def _log(msg):
     print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
 
+def store_derived(path):
+    """Add to a saved basis file the per-basis constants a registration would compute in every process
+    (``bareesa.registration.prepare_basis``), computed afresh from its fields as stored."""
+    from bareesa.basis_io import add_extras, load_basis, update_card
+    from bareesa.registration import PREPARED_EXTRAS, prepare_basis
+
+    basis = load_basis(path)
+    for key in PREPARED_EXTRAS:
+        basis.extras.pop(key, None)
+    prepare_basis(basis)
+    derived = {k: basis.extras[k] for k in PREPARED_EXTRAS if k in basis.extras}
+    if derived:  # (a basis without shape weights or pose prototypes has none)
+        add_extras(path, **derived)
+        names = ", ".join(k for k in derived if not k.endswith(("_weights", "_codes")))
+        update_card(path, provenance=basis.provenance | {"derived": f"{names}: {DERIVED_NOTE}"})
+    return list(derived)
+
+
+DERIVED_NOTE = ("computed from the stored fields by bareesa.registration.prepare_basis (python -m bases.build "
+                "--derived): G-bar(0) in the shape weights, the decoded pose prototypes' surface moments")
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="python -m bases.build", description=__doc__.splitlines()[0])
     parser.add_argument("names", nargs="*", metavar="NAME", help="bases to build: human, deformables, humanoid (default: human and deformables)")
@@ -34,10 +58,22 @@ def main(argv=None):
     parser.add_argument("--full-precision", action="store_true", help="store fields in float64")
     parser.add_argument("--keep-full", type=Path, metavar="DIR",
                         help="also write float64 copies to DIR (to compare accuracy with the shipped precision)")
+    parser.add_argument("--derived", action="store_true",
+                        help="only recompute the derived constants of bases already built (no bpy, no Anny)")
     args = parser.parse_args(argv)
     unknown = set(args.names) - set(BUILDERS)
     if unknown:
         parser.error(f"unknown basis {', '.join(sorted(unknown))}; choose from {', '.join(BUILDERS)}")
+
+    if args.derived:
+        for name in dict.fromkeys(args.names or DEFAULT):
+            path = args.output / f"{name}.npz"
+            if not path.exists():
+                sys.exit(f"error: no basis {path} to add derived constants to; build it first")
+            start = time.perf_counter()
+            stored = store_derived(path)
+            _log(f"{path}: {', '.join(stored) or 'no derived constants'} ({time.perf_counter() - start:.1f} s)")
+        return
 
     import torch
 
@@ -60,6 +96,7 @@ def main(argv=None):
         basis.provenance["fields_dtype"] = np.dtype(dtype or np.float64).name
         path = args.output / f"{name}.npz"
         save_basis(path, basis, fields_dtype=dtype)
+        store_derived(path)
         if args.keep_full is not None and dtype is not None:
             args.keep_full.mkdir(parents=True, exist_ok=True)
             save_basis(args.keep_full / f"{name}.npz", basis)

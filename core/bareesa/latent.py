@@ -21,6 +21,9 @@ from .errors import InputError
 from .h2_metric import H2Weights
 
 FORMAT_VERSION = 1
+#: ``Basis.extras`` keys of the stored template metrics, each with its H2 weights (key + "_weights"): the
+#: basis' weights' (or the first ones asked for) and its shape weights'
+TEMPLATE_METRIC_KEYS = ("template_metric", "shape_template_metric")
 
 
 @dataclass(frozen=True)
@@ -121,21 +124,27 @@ class Basis:
 
     def template_metric(self, weights=None):
         """G-bar(0), the latent metric at the template (P, P) float64 numpy, for ``weights``
-        (default the basis'). Computed once and kept in ``extras`` (so saved with the basis):
-        solvers use it to precondition (``whitening``)."""
+        (default the basis'). Computed once and kept in ``extras`` (so saved with the basis) for the
+        basis' weights and its shape weights (``TEMPLATE_METRIC_KEYS``; ``registration.prepare_basis``
+        stores both in a basis file): solvers use it to precondition (``whitening``)."""
         w = H2Weights.parse(self.weights if weights is None else weights)
-        stored = self.extras.get("template_metric")
-        if stored is not None and np.array_equal(self.extras.get("template_metric_weights"), w.as_tuple()):
-            return stored
-        others = self.__dict__.setdefault("_other_template_metrics", {})  # e.g. the shape weights'
+        for key in TEMPLATE_METRIC_KEYS:
+            stored = self.extras.get(key)
+            if stored is not None and np.array_equal(self.extras.get(key + "_weights"), w.as_tuple()):
+                return stored
+        others = self.__dict__.setdefault("_other_template_metrics", {})  # weights the basis does not name
         if w.as_tuple() in others:
             return others[w.as_tuple()]
         t, f, h = self.tensors()
         gram = h2_metric.assembled_metric_matrix(t, f, h, w).numpy()
-        if w == self.weights or stored is None:
-            self.extras["template_metric"], self.extras["template_metric_weights"] = gram, np.array(w.as_tuple())
+        if w == self.weights or self.extras.get("template_metric") is None:
+            key = "template_metric"
+        elif w == self.shape_weights:
+            key = "shape_template_metric"
         else:
             others[w.as_tuple()] = gram
+            return gram
+        self.extras[key], self.extras[key + "_weights"] = gram, np.array(w.as_tuple())
         return gram
 
     def card(self):

@@ -25,11 +25,11 @@ Frames: registration happens in the template frame; ``RegistrationResult.vertice
 back with the inverse similarity, so they overlay the scan in the scan's units.
 """
 
-from .multiscale import RegistrationResult, register
+from .multiscale import PREPARED_EXTRAS, RegistrationResult, prepare_basis, register
 from .poses import pose_starts
 from .prealign import Alignment, align_to_template, prealign_candidates, surface_moments
 from .problem import resample_in_time
 from .symmetric import Matching, symmetric_match
 
-__all__ = ["Alignment", "Matching", "RegistrationResult", "align_to_template", "pose_starts", "prealign_candidates",
-           "register", "resample_in_time", "surface_moments", "symmetric_match"]
+__all__ = ["PREPARED_EXTRAS", "Alignment", "Matching", "RegistrationResult", "align_to_template", "pose_starts", "prealign_candidates",
+           "prepare_basis", "register", "resample_in_time", "surface_moments", "symmetric_match"]

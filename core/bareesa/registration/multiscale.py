@@ -41,7 +41,8 @@ from ..threads import with_one_blas_thread
 from ..transforms import Similarity
 from ..varifold import KERNELS
 from .poses import check_pose_candidates, stage_budget, try_poses
-from .prealign import PREALIGN_RATIO, Alignment, landmark_alignment, prealign_candidates, surface_moments
+from .prealign import (PREALIGN_RATIO, Alignment, landmark_alignment, moment_table, prealign_candidates,
+                       surface_moments)
 from .problem import RegistrationProblem, normal_spread
 
 SCREEN_DIVISOR = 8          # candidate alignments are screened with 1/8 of the first level's iterations
@@ -79,6 +80,14 @@ MIN_SCAN_FACES = 100
 #: A scan whose thinnest extent (smallest eigenvalue of its second moment of area, over the largest) is
 #: below this share of the template's is refused as flat (a sheet, a wall, a single view of a plane).
 MIN_FLATNESS_RATIO = 0.02
+#: ``Basis.extras`` key of the surface moments of the decoded pose prototypes (``prealign.moment_table``),
+#: with the codes they are of under this key + "_codes" (``prepare_basis``): 33 surface moments cost ~0.1 s
+#: of every registration's pre-alignment
+PROTOTYPE_MOMENTS = "pose_prototype_moments"
+#: The extras ``prepare_basis`` computes (a basis' own template metric, "template_metric", is the basis'
+#: and stays as it was built)
+PREPARED_EXTRAS = ("shape_template_metric", "shape_template_metric_weights", PROTOTYPE_MOMENTS,
+                   PROTOTYPE_MOMENTS + "_codes")
 
 
 @dataclass
@@ -247,6 +256,35 @@ def is_poor_fit(basis, residual):
 
 
 @with_one_blas_thread
+def prepare_basis(basis):
+    """Compute the per-basis constants every registration would otherwise compute once per process and
+    keep them in ``basis.extras`` (a basis saved afterwards carries them): the template metric of its shape
+    weights (``Basis.template_metric``) and the surface moments of its decoded pose prototypes
+    (``PROTOTYPE_MOMENTS``) -> basis. ~0.3 s on `human`; ``python -m bases.build --derived`` stores them
+    in the bundled files."""
+    basis.template_metric()  # (the basis' own weights first: the first metric asked for would take its key)
+    basis.template_metric(basis.shape_metric)
+    poses = check_pose_candidates(basis, "auto")
+    if poses is not None:
+        _reference_moments(basis, poses, basis.template + np.tensordot(poses, basis.fields, axes=1))
+    return basis
+
+
+def _reference_moments(basis, poses, references):
+    """The surface moments of the decoded pose candidates (K, N, 3) (``prealign.moment_table``): stored in
+    ``basis.extras`` when they are the basis' own pose prototypes (PROTOTYPE_MOMENTS, with the codes they
+    are of), else computed -> (K, 12)."""
+    key = PROTOTYPE_MOMENTS
+    stored, of = basis.extras.get(key), basis.extras.get(key + "_codes")
+    if stored is not None and of is not None and np.array_equal(of, poses):
+        return stored
+    table = moment_table(references, basis.faces)
+    if np.array_equal(poses, basis.extras.get("pose_prototypes")):
+        basis.extras[key], basis.extras[key + "_codes"] = table, np.array(poses, dtype=np.float64)
+    return table
+
+
+@with_one_blas_thread
 def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, landmarks=None,
              landmark_weight=1.0, scan_face_weights=None, metric=None, kernel="auto", backend="auto",
              binning="auto", refine_transform=None, init_code=None, pose_candidates="auto", callback=None, cancel=None,
@@ -309,7 +347,9 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     if prealign:
         references = None if poses is None else basis.template + np.tensordot(poses, basis.fields, axes=1)
         candidates = prealign_candidates(basis.template, basis.faces, sv, sf, face_w, monitor=monitor,
-                                         progress=(0.0, PREALIGN_FRACTION), references=references)
+                                         progress=(0.0, PREALIGN_FRACTION), references=references,
+                                         reference_moments=None if poses is None else _reference_moments(
+                                             basis, poses, references))
         candidates = [c for c in candidates if c.score <= PREALIGN_RATIO * candidates[0].score + 1e-12]
         if marks is not None:  # three or more landmarks fix the orientation the surfaces alone may not
             by_marks = landmark_alignment(basis.template[marks[0]], marks[1], marks[2])

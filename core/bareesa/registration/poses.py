@@ -94,13 +94,16 @@ def try_poses(problem, basis, level, judge, path, transform, candidates, progres
     code = path[-1]
     level = replace(level, weight=level.weight * POSE_WEIGHT_GAIN)
     starts = pose_starts(basis, candidates, code)
-    current, *quick = [score for _, score in problem.realign(level, [code, *starts], transform, max_iter=0)]
+    energies = problem.straight_energies(level, [code, *starts])  # (the re-alignments' scores carry them)
+    current, *quick = [score for _, score in problem.realign(level, [code, *starts], transform, max_iter=0,
+                                                             energies=energies)]
     quick = np.array(quick)
     if quick.min() > POSE_SKIP * current:  # the current code fits far better than any candidate could
         return path, transform, 0.0
     keep = np.argsort(quick)[:POSE_REALIGN]
     starts = starts[keep]
-    aligned, scores = zip(*problem.realign(level, [code, *starts], transform))
+    aligned, scores = zip(*problem.realign(level, [code, *starts], transform,
+                                           energies=[energies[0], *(energies[1 + j] for j in keep)]))
     scores = np.array(scores)
     pick = [int(j) for j in np.argsort(scores[1:])[:POSE_FINALISTS] if scores[1 + j] <= POSE_TIE * scores[0]]
     if not pick:

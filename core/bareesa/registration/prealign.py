@@ -94,6 +94,13 @@ def surface_moments(verts, faces, face_weights=None):
     return float(total), center, second / (12.0 * total)
 
 
+def moment_table(surfaces, faces):
+    """Centroid and second moment of each surface (``surface_moments``) with faces (F, 3), as
+    ``prealign_candidates``' reference_moments: (K, N, 3) -> (K, 12) = centroid (3) | moment (9)."""
+    out = [surface_moments(verts, faces)[1:] for verts in surfaces]
+    return np.array([np.concatenate([c, m.ravel()]) for c, m in out]).reshape(len(out), 12)
+
+
 def coarse_measure(verts, faces, face_weights, cell):
     """A surface binned into cubic cells (``varifold.cell_features``, binet), float64 on the CPU:
     verts (N, 3), faces (F, 3), face_weights (F,) or None -> centroids (C, 3), tensors sum a n n^T (C, 9)."""
@@ -136,16 +143,19 @@ def _candidate_rotations(axes_t, axes_s):
 
 
 def prealign_candidates(template_verts, template_faces, scan_verts, scan_faces, scan_face_weights=None,
-                        keep=PREALIGN_KEEP, monitor=None, progress=(0.0, 1.0), references=None):
+                        keep=PREALIGN_KEEP, monitor=None, progress=(0.0, 1.0), references=None,
+                        reference_moments=None):
     """Distinct candidate alignments of a scan to a template, best first: -> [Alignment].
 
     template (N, 3), (F, 3); scan (M, 3), (G, 3); scan_face_weights (G,) or None (zero-weight
     faces are ignored); references (K, N, 3) or None: other surfaces with the template's faces, in
     its frame (decoded pose prototypes), of which the PREALIGN_REFERENCES with normalised second
-    moments nearest the scan's give candidates too. Each transform maps scan coordinates into the
-    template frame; the score is the (binned, binet) squared distance at the finer pre-alignment sigma
-    between the normalised template (or reference) and the mapped scan, over the former's squared
-    norm. At most ``keep`` candidates, pairwise more than PREALIGN_DISTINCT degrees apart.
+    moments nearest the scan's give candidates too; reference_moments (K, 12) or None: their centroids
+    and second moments as ``moment_table`` gives them (computed here when None). Each transform maps
+    scan coordinates into the template frame; the score is the (binned, binet) squared distance at the
+    finer pre-alignment sigma between the normalised template (or reference) and the mapped scan, over
+    the former's squared norm. At most ``keep`` candidates, pairwise more than PREALIGN_DISTINCT degrees
+    apart.
     """
     monitor = monitor or Monitor("prealign")
     lo, hi = progress
@@ -155,11 +165,14 @@ def prealign_candidates(template_verts, template_faces, scan_verts, scan_faces, 
     rho_s = math.sqrt(np.trace(ms))
     zs = (sv - cs) / rho_s
     surfaces = [np.asarray(template_verts, np.float64)]
+    moments = [surface_moments(surfaces[0], tf)[1:]]
     if references is not None:
         surfaces += [np.asarray(r, np.float64) for r in references]
+        if reference_moments is None:
+            reference_moments = moment_table(surfaces[1:], tf)
+        moments += [(m[:3], m[3:].reshape(3, 3)) for m in np.asarray(reference_moments, np.float64)]
     targets = []  # per surface: centroid, RMS radius, vertices, principal axes, normalised moments, reference
-    for k, verts in enumerate(surfaces):
-        _, ct, mt = surface_moments(verts, tf)
+    for k, (verts, (ct, mt)) in enumerate(zip(surfaces, moments)):
         rho_t = math.sqrt(np.trace(mt))
         spread, axes = np.linalg.eigh(mt)
         targets.append((ct, rho_t, verts, axes, spread / rho_t ** 2, k - 1 if k else None))

@@ -227,12 +227,13 @@ class RegistrationProblem:
         self.scale, self.n_fields = basis.scale, basis.n_fields
         self.template_np, self.faces_np, self.fields_np = basis.template, basis.faces, basis.fields
 
-    def realign(self, level, codes, transform, max_iter=POSE_ALIGN_ITER):
+    def realign(self, level, codes, transform, max_iter=POSE_ALIGN_ITER, energies=None):
         """The alignment refined for each surface F(code) at ``level``'s sigma (binned binet varifold,
         rotation, translation and a bounded log-scale about the template's centre), starting from the
         translation that matches F(code)'s area centroid with the scan's (a raised arm moves the centroid
         by several cm): codes (K, P) -> [(Similarity, weight * Gamma + energy of the straight path
-        0 -> code)], Gamma on the coarse cells. max_iter 0 scores the centroid-matched starts alone."""
+        0 -> code)], Gamma on the coarse cells. max_iter 0 scores the centroid-matched starts alone;
+        energies: those straight paths' energies (``straight_energies``) when known, else computed."""
         sigma = level.sigma * self.scale
         cell = PREALIGN_CELL * sigma
         moved = transform.apply(self.scan)
@@ -241,7 +242,7 @@ class RegistrationProblem:
         scan = BinnedMeasureLoss(*coarse_measure(moved - self.center, self.scan_faces, self.scan_weights_np, cell),
                                  sigma)
         eye = torch.eye(3, dtype=torch.float64)
-        energies = self.straight_energies(level, codes)
+        energies = self.straight_energies(level, codes) if energies is None else energies
         out = []
         for code, energy in zip(codes, energies):
             self.monitor.check()
