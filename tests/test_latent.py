@@ -250,6 +250,8 @@ def test_shape_weights_are_saved_and_registration_and_random_bodies_use_them(tmp
         assert np.array_equal(again.template_metric(again.shape_weights), other)
         assert np.array_equal(again.template_metric(), g)
     assert not np.allclose(again.template_metric((3, 1, 1, 1, 1, 5)), other)  # other weights: computed
+    again.extras["shape_template_metric"] = other[:2]  # a damaged one too
+    assert np.allclose(again.template_metric(again.shape_weights), other, rtol=1e-12, atol=0)
 
     class Seen(Exception):
         pass

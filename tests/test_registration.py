@@ -527,6 +527,8 @@ def test_a_prepared_basis_carries_its_constants_and_prealigns_exactly_as_one_com
     other = protos[::-1].copy()
     moments = multiscale._reference_moments(loaded, other, refs[::-1])
     assert np.array_equal(moments, table[::-1]) and loaded.extras[multiscale.PROTOTYPE_MOMENTS] is table
+    loaded.extras[multiscale.PROTOTYPE_MOMENTS] = table[:, :9]  # a damaged table is computed afresh
+    assert np.array_equal(multiscale._reference_moments(loaded, protos, refs), table)
 
 
 def test_pose_candidates_auto_without_prototypes_changes_nothing_and_bad_ones_are_refused(space, aligned):

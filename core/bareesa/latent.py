@@ -128,9 +128,10 @@ class Basis:
         basis' weights and its shape weights (``TEMPLATE_METRIC_KEYS``; ``registration.prepare_basis``
         stores both in a basis file): solvers use it to precondition (``whitening``)."""
         w = H2Weights.parse(self.weights if weights is None else weights)
-        for key in TEMPLATE_METRIC_KEYS:
+        for key in TEMPLATE_METRIC_KEYS:  # (one of another shape, e.g. from an edited file, is computed afresh)
             stored = self.extras.get(key)
-            if stored is not None and np.array_equal(self.extras.get(key + "_weights"), w.as_tuple()):
+            if (stored is not None and np.shape(stored) == (self.n_fields,) * 2
+                    and np.array_equal(self.extras.get(key + "_weights"), w.as_tuple())):
                 return stored
         others = self.__dict__.setdefault("_other_template_metrics", {})  # weights the basis does not name
         if w.as_tuple() in others:

@@ -276,7 +276,8 @@ def _reference_moments(basis, poses, references):
     are of), else computed -> (K, 12)."""
     key = PROTOTYPE_MOMENTS
     stored, of = basis.extras.get(key), basis.extras.get(key + "_codes")
-    if stored is not None and of is not None and np.array_equal(of, poses):
+    if (stored is not None and of is not None and np.shape(stored) == (len(poses), 12)
+            and np.isfinite(stored).all() and np.array_equal(of, poses)):
         return stored
     table = moment_table(references, basis.faces)
     if np.array_equal(poses, basis.extras.get("pose_prototypes")):
