@@ -422,6 +422,9 @@ def test_build_basis_from_an_animated_mesh_saves_and_loads_it(scene, tiny, tmp_p
     learned = load_basis(path)
     protos = learned.extras["pose_prototypes"]  # a "pose" group: registration's starting poses are stored
     assert protos.shape[1] == learned.n_fields and 1 <= len(protos) <= 6 and np.isfinite(protos).all()
+    # ... with the constants every registration would compute (registration.prepare_basis)
+    assert np.array_equal(learned.extras["pose_prototype_moments_codes"], protos)
+    assert np.array_equal(learned.extras["template_metric_weights"], learned.weights.as_tuple())
     ratios = learned.provenance["groups"]["pose"]["variance_ratios"]
     assert sum(ratios[:2]) > 0.9999  # the frames mix two shape keys: two motions (Blender's float32 noise aside)
     assert bpy.ops.bareesa.load_template(basis="learned") == {"FINISHED"}

@@ -121,6 +121,9 @@ def test_build_basis_then_distance_and_interpolate_on_registered_meshes(capsys, 
     distinct = np.unique(project_to_basis(basis, frames)[0].round(9), axis=0)
     assert protos.shape == distinct.shape  # fewer distinct frames than the 24 centres: each its own
     assert np.allclose(sorted(protos.tolist()), sorted(distinct.tolist()), atol=1e-8)
+    # ... and the constants every registration would compute (registration.prepare_basis) are in the file
+    assert np.array_equal(basis.extras["template_metric_weights"], basis.weights.as_tuple())
+    assert np.array_equal(basis.extras["pose_prototype_moments_codes"], protos)
     end = seqs["bend"][-1]
     rc, text, err = run(capsys, "distance", tmp / "template.ply", end, "--basis", out, "--json")
     assert rc == 0, err

@@ -106,6 +106,7 @@ class BAREESA_OT_build_basis(SolveOperator, bpy.types.Operator):
                                          callback=callback, cancel=cancel)
             if group == "pose":  # starting poses for registration (bareesa.registration, pose candidates)
                 basis.extras["pose_prototypes"] = solver.module("statistics").pose_prototypes(basis, frames)
+            solver.module("registration").prepare_basis(basis)  # what every registration would compute
             basis_io.save_basis(path, basis)
             return basis
 

@@ -26,6 +26,7 @@ from .landmarks import read_scan_landmarks, read_template_landmarks
 from .masks import read_face_weights
 from .mesh import load_mesh, save_mesh, validate_mesh
 from .progress import tqdm_callback
+from .registration import prepare_basis
 from .scan_simulator import add_simulate_scan_arguments, apply_similarity, simulate_scan, simulate_scan_cli
 from .statistics import fit_training_distribution, pose_prototypes, sample_velocities
 from .workflows import (KnownCode, Options, Scan, TemplateMesh, check_device, code_of, extrapolate, geodesic_between,
@@ -156,7 +157,7 @@ def cmd_build_basis(args):
     if "pose" in sequences:  # starting poses tried by registration (core.registration, pose candidates)
 
         basis.extras["pose_prototypes"] = pose_prototypes(basis, np.concatenate(sequences["pose"]))
-    save_basis(args.output, basis)
+    save_basis(args.output, prepare_basis(basis))  # (with the constants every registration would compute)
     rows = {g: f"{b - a} fields, explained variance {basis.provenance['groups'][g]['explained_variance']:.4f}"
             for g, (a, b) in basis.groups.items()}
     _print(rows, False, f"wrote {args.output} ({basis.n_fields} fields)")

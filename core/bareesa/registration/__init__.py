@@ -31,5 +31,5 @@ from .prealign import Alignment, align_to_template, prealign_candidates, surface
 from .problem import resample_in_time
 from .symmetric import Matching, symmetric_match
 
-__all__ = ["PREPARED_EXTRAS", "Alignment", "Matching", "RegistrationResult", "align_to_template", "pose_starts", "prealign_candidates",
-           "prepare_basis", "register", "resample_in_time", "surface_moments", "symmetric_match"]
+__all__ = ["PREPARED_EXTRAS", "Alignment", "Matching", "RegistrationResult", "align_to_template", "pose_starts",
+           "prealign_candidates", "prepare_basis", "register", "resample_in_time", "surface_moments", "symmetric_match"]
