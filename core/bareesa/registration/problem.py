@@ -56,8 +56,11 @@ SCALE_LOG_LIMIT = math.log(1.15)
 #: screened alignments are compared on cells of this x sigma (both surfaces): the level's own coarse
 #: binning (BIN_CELL) errs differently per alignment
 SCREEN_CELL = 0.25
-#: L-BFGS steps of the re-alignment of a candidate start (``RegistrationProblem.realign``)
-POSE_ALIGN_ITER = 15
+#: L-BFGS steps of the re-alignment of a candidate start (``RegistrationProblem.realign``): on 29 held-out
+#: `human` scans whose pose stage ran (2026-12-06, session 37) 10 picked the same finalists as 15 on every
+#: one, their scores within 0.55 % on 19 of the 21 with finalists (8 % on two, where the current code's
+#: own re-alignment converges last), at ~3/4 of the time (bench/README)
+POSE_ALIGN_ITER = 10
 #: a level's progress reports carry the code and alignment so far every this many iterations
 PREVIEW_EVERY = 5
 #: the per-face algebra of a level's path energy and of the straight paths' that score pose starts
