@@ -531,6 +531,42 @@ def test_a_prepared_basis_carries_its_constants_and_prealigns_exactly_as_one_com
     assert np.array_equal(multiscale._reference_moments(loaded, protos, refs), table)
 
 
+def test_keops_kernels_are_built_before_the_levels_and_are_the_ones_a_registration_sums_with(space, monkeypatch,
+                                                                                            tmp_path):
+    # KeOps compiles a formula at its first use in an environment (~5 s each): a registration has them built
+    # before its first level and says so, sums with no formula that was not built, and leaves a marker by
+    # which later processes (and registrations) skip it
+    from bareesa.registration import multiscale
+    from bareesa.varifold import backends, keops_available
+
+    if not keops_available():
+        pytest.skip("pykeops does not import here")
+    seen, real = [], backends._keops_sums
+
+    def spy(x, u, y, v, g, kind, grad, ranges=None):
+        seen.append((type(kind).__name__, getattr(kind, "dim", None), grad, ranges is not None, x.dtype))
+        return real(x, u, y, v, g, kind, grad, ranges)
+
+    marker = tmp_path / "built"
+    monkeypatch.setattr(backends, "_keops_sums", spy)
+    monkeypatch.setattr(backends, "_built_marker", lambda dtype, device: marker)
+    monkeypatch.setattr(backends, "_built", set())
+    for run in ("first", "same process", "next process"):
+        if run == "next process":
+            monkeypatch.setattr(backends, "_built", set())
+        events, seen[:] = [], []
+        registration.register(space["basis"], space["scan"], space["faces"], prealign=False, backend="truncated",
+                              callback=events.append)
+        messages = [e.message for e in events]
+        if run != "first":
+            assert multiscale.KEOPS_BUILD_MESSAGE not in messages and seen and marker.exists()
+            continue
+        said = messages.index(multiscale.KEOPS_BUILD_MESSAGE)
+        assert not any("level" in m for m in messages[:said])
+        built, summed = set(seen[:len(backends.KEOPS_FORMULAS)]), set(seen[len(backends.KEOPS_FORMULAS):])
+        assert len(built) == len(backends.KEOPS_FORMULAS) and summed and summed <= built
+
+
 def test_pose_candidates_auto_without_prototypes_changes_nothing_and_bad_ones_are_refused(space, aligned):
     basis = space["basis"]
     assert "pose_prototypes" not in basis.extras

@@ -39,7 +39,7 @@ from ..mesh import face_geometry, validate_mesh
 from ..progress import Monitor
 from ..threads import with_one_blas_thread
 from ..transforms import Similarity
-from ..varifold import KERNELS
+from ..varifold import KERNELS, build_keops_kernels
 from .poses import check_pose_candidates, stage_budget, try_poses
 from .prealign import (PREALIGN_RATIO, Alignment, landmark_alignment, moment_table, prealign_candidates,
                        surface_moments)
@@ -80,6 +80,9 @@ MIN_SCAN_FACES = 100
 #: A scan whose thinnest extent (smallest eigenvalue of its second moment of area, over the largest) is
 #: below this share of the template's is refused as flat (a sheet, a wall, a single view of a plane).
 MIN_FLATNESS_RATIO = 0.02
+#: What the progress says while KeOps' kernels are loaded, or built at their first use on a machine
+#: (``varifold.build_keops_kernels``; the bar stands still for ~20 s then)
+KEOPS_BUILD_MESSAGE = "registration: KeOps' kernels (built at their first use on a machine, ~20 s)"
 #: ``Basis.extras`` key of the surface moments of the decoded pose prototypes (``prealign.moment_table``),
 #: with the codes they are of under this key + "_codes" (``prepare_basis``): 33 surface moments cost ~0.1 s
 #: of every registration's pre-alignment
@@ -361,6 +364,8 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
     problem = RegistrationProblem(basis, sv, sf, face_w, marks, landmark_weight, metric, backend, binning,
                                   refine_transform, dtype, device, monitor)
     lo = PREALIGN_FRACTION if prealign else 0.0
+    if backend != "dense":  # KeOps builds its kernels at their first use on a machine: say so, not in a level
+        build_keops_kernels(dtype, device, announce=lambda: monitor.report(lo, KEOPS_BUILD_MESSAGE))
     used = sv if face_w is None else sv[np.unique(sf[face_w > 0])]
     # with pose prototypes the pre-alignment's ranking decides the first fit (see the module docstring),
     # unless it cannot tell the best candidates apart

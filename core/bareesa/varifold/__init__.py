@@ -75,12 +75,13 @@ is < 2e7, else "truncated" when the cutoff is short, else "keops" (or "dense" wi
 """
 
 from . import kernels
+from .backends import build_keops_kernels
 from .kernels import (BACKENDS, DEFAULT_TOL, KERNELS, choose_backend, default_cutoff, is_oriented,
                       keops_available)
 from .loss import BIN_CELL, BinnedMeasureLoss, BinnedVarifoldLoss, VarifoldLoss, varifold_distance, varifold_inner
 from .measure import binned_measure, cell_features, group_features, moved_measure, varifold_measure
 
 __all__ = ["BACKENDS", "BIN_CELL", "BinnedMeasureLoss", "BinnedVarifoldLoss", "DEFAULT_TOL", "KERNELS",
-           "VarifoldLoss", "binned_measure", "cell_features", "choose_backend", "default_cutoff",
+           "VarifoldLoss", "binned_measure", "build_keops_kernels", "cell_features", "choose_backend", "default_cutoff",
            "group_features", "is_oriented", "keops_available", "kernels", "moved_measure", "varifold_distance",
            "varifold_inner", "varifold_measure"]

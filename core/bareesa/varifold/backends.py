@@ -6,9 +6,14 @@ the Gaussian K_ij = exp(-g |x_i - y_j|^2) (g = 1 / sigma^2) times what the kind 
 puts on a pair (``FacePairs``, ``FeaturePairs``), with the sums that the gradient needs.
 """
 
+import hashlib
+import os
+import sys
+from pathlib import Path
+
 import torch
 
-from .kernels import KERNELS, default_cutoff, keops_available
+from .kernels import KEOPS_CPU_FLAGS, KERNELS, default_cutoff, keops_available
 
 DENSE_CHUNK_BYTES = 256 * 2**20
 CELL_FRACTION = 0.25      # grid cell size of the "j" measure, in units of the cutoff
@@ -162,6 +167,59 @@ def _keops_sums(x, u, y, v, g, kind, grad, ranges=None):
     d = xi - yj
     K = (-G * d.sqnorm2()).exp()
     return kind.keops(K, d, ui, vj, C, grad).sum(dim=1, ranges=ranges)
+
+
+#: The KeOps formulas the losses use: face sums and cell-feature sums (``cell_features``' binet tensors, 9
+#: numbers a cell), each with and without the gradient's sums; a kernel's coefficients are arguments, not
+#: part of a formula (so binet, linear and the oriented kernels share one)
+KEOPS_FORMULAS = ((lambda: FacePairs("binet"), False), (lambda: FacePairs("binet"), True),
+                  (lambda: FeaturePairs(9), False), (lambda: FeaturePairs(9), True))
+_built = set()  # (dtype, device) whose formulas this process has evaluated or found built
+
+
+def _built_marker(dtype, device):
+    """The file in KeOps' build folder that says these formulas were built for this environment (its
+    Python, KeOps' flags, dtype and device): KeOps' binaries are per environment."""
+    import pykeops
+
+    tag = hashlib.sha1(repr((sys.prefix, sys.version, pykeops.__version__, os.environ.get("CXXFLAGS"),
+                             KEOPS_CPU_FLAGS, [f"{type(m()).__name__}{g}" for m, g in KEOPS_FORMULAS],
+                             str(dtype), device.type)).encode()).hexdigest()[:16]
+    return Path(pykeops.get_build_folder()) / f"bareesa_kernels_{tag}.built"
+
+
+def build_keops_kernels(dtype=torch.float64, device="cpu", announce=None):
+    """Evaluate each of KEOPS_FORMULAS once on a few points of ``dtype`` on ``device``, as the losses sum
+    them there (block-sparse on the CPU, "truncated"; whole on a GPU, "keops"), so that KeOps compiles now
+    what it has not built for this environment yet (~20 s for the four, at their first use on a machine)
+    instead of in the middle of a solve; then leaves a marker in KeOps' build folder, and later processes
+    find it and do nothing. announce: called first when they are to be evaluated (e.g. to say so on a
+    progress bar). -> whether this call evaluated them (False: KeOps unavailable, or built before)."""
+    device = torch.device(device)
+    key = (dtype, str(device))
+    if key in _built or not keops_available():
+        return False
+    marker = _built_marker(dtype, device)
+    if marker.exists():
+        _built.add(key)
+        return False
+    if announce is not None:
+        announce()
+    x = torch.linspace(0, 1, 12, dtype=dtype, device=device).reshape(4, 3)
+    normals = torch.nn.functional.normalize(x + 0.5, dim=1)
+    weights = torch.ones(4, dtype=dtype, device=device)
+    features = torch.cat([x, x, x], 1)
+    for make, grad in KEOPS_FORMULAS:
+        kind = make()
+        engine = Engine("keops" if device.type == "cuda" else "truncated", 1.0, kind, 10.0, use_keops=True)
+        u, v = (normals, (normals, weights)) if isinstance(kind, FacePairs) else (features, (features,))
+        engine.sums(x, u, x, v, grad)
+    _built.add(key)
+    try:
+        marker.write_text("built by bareesa.varifold.build_keops_kernels\n")
+    except OSError:  # a read-only cache: the next process evaluates them again (a few ms each)
+        pass
+    return True
 
 
 def _tile_sums(x, u, y, v, g, kind, grad):
