@@ -567,6 +567,25 @@ def test_keops_kernels_are_built_before_the_levels_and_are_the_ones_a_registrati
         assert len(built) == len(backends.KEOPS_FORMULAS) and summed and summed <= built
 
 
+def test_a_machine_where_keops_cannot_build_its_kernels_registers_with_torch_sums_after_a_warning(space, aligned,
+                                                                                                 monkeypatch, tmp_path):
+    # pykeops imports but its compiler fails (no g++, a broken toolchain): the registration is not lost, KeOps
+    # is turned off for the process with a one-line warning, and the torch sums give the same fit
+    from bareesa.varifold import backends, kernels
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("[KeOps] Error: g++ not found\nmore lines")
+
+    monkeypatch.setattr(kernels, "_KEOPS", True)
+    monkeypatch.setattr(backends, "_keops_sums", broken)
+    monkeypatch.setattr(backends, "_built", set())
+    monkeypatch.setattr(backends, "_built_marker", lambda dtype, device: tmp_path / "built")
+    with pytest.warns(RuntimeWarning, match="KeOps cannot build its kernels here .*g\\+\\+ not found.*torch's sums"):
+        res = registration.register(space["basis"], space["scan"], space["faces"], prealign=False)
+    assert not kernels.keops_available() and not (tmp_path / "built").exists()
+    assert np.abs(res.code - aligned.code).max() < 1e-6 * np.linalg.norm(aligned.code)
+
+
 def test_pose_candidates_auto_without_prototypes_changes_nothing_and_bad_ones_are_refused(space, aligned):
     basis = space["basis"]
     assert "pose_prototypes" not in basis.extras

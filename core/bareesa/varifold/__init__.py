@@ -82,6 +82,6 @@ from .loss import BIN_CELL, BinnedMeasureLoss, BinnedVarifoldLoss, VarifoldLoss,
 from .measure import binned_measure, cell_features, group_features, moved_measure, varifold_measure
 
 __all__ = ["BACKENDS", "BIN_CELL", "BinnedMeasureLoss", "BinnedVarifoldLoss", "DEFAULT_TOL", "KERNELS",
-           "VarifoldLoss", "binned_measure", "build_keops_kernels", "cell_features", "choose_backend", "default_cutoff",
-           "group_features", "is_oriented", "keops_available", "kernels", "moved_measure", "varifold_distance",
-           "varifold_inner", "varifold_measure"]
+           "VarifoldLoss", "binned_measure", "build_keops_kernels", "cell_features", "choose_backend",
+           "default_cutoff", "group_features", "is_oriented", "keops_available", "kernels", "moved_measure",
+           "varifold_distance", "varifold_inner", "varifold_measure"]

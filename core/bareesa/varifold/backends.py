@@ -9,11 +9,12 @@ puts on a pair (``FacePairs``, ``FeaturePairs``), with the sums that the gradien
 import hashlib
 import os
 import sys
+import warnings
 from pathlib import Path
 
 import torch
 
-from .kernels import KEOPS_CPU_FLAGS, KERNELS, default_cutoff, keops_available
+from .kernels import KEOPS_CPU_FLAGS, KERNELS, default_cutoff, disable_keops, keops_available
 
 DENSE_CHUNK_BYTES = 256 * 2**20
 CELL_FRACTION = 0.25      # grid cell size of the "j" measure, in units of the cutoff
@@ -194,7 +195,9 @@ def build_keops_kernels(dtype=torch.float64, device="cpu", announce=None):
     what it has not built for this environment yet (~20 s for the four, at their first use on a machine)
     instead of in the middle of a solve; then leaves a marker in KeOps' build folder, and later processes
     find it and do nothing. announce: called first when they are to be evaluated (e.g. to say so on a
-    progress bar). -> whether this call evaluated them (False: KeOps unavailable, or built before)."""
+    progress bar). Where KeOps cannot build them (no C++ compiler, a broken toolchain) it is turned off for
+    the process with a warning, and the solvers use their torch sums. -> whether this call evaluated them
+    (False: KeOps unavailable or turned off, or built before)."""
     device = torch.device(device)
     key = (dtype, str(device))
     if key in _built or not keops_available():
@@ -209,11 +212,18 @@ def build_keops_kernels(dtype=torch.float64, device="cpu", announce=None):
     normals = torch.nn.functional.normalize(x + 0.5, dim=1)
     weights = torch.ones(4, dtype=dtype, device=device)
     features = torch.cat([x, x, x], 1)
-    for make, grad in KEOPS_FORMULAS:
-        kind = make()
-        engine = Engine("keops" if device.type == "cuda" else "truncated", 1.0, kind, 10.0, use_keops=True)
-        u, v = (normals, (normals, weights)) if isinstance(kind, FacePairs) else (features, (features,))
-        engine.sums(x, u, x, v, grad)
+    try:
+        for make, grad in KEOPS_FORMULAS:
+            kind = make()
+            engine = Engine("keops" if device.type == "cuda" else "truncated", 1.0, kind, 10.0, use_keops=True)
+            u, v = (normals, (normals, weights)) if isinstance(kind, FacePairs) else (features, (features,))
+            engine.sums(x, u, x, v, grad)
+    except Exception as err:  # noqa: BLE001  (KeOps' compiler errors have no common type)
+        disable_keops()
+        message = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        warnings.warn(f"KeOps cannot build its kernels here ({message[:200]}); using torch's sums instead "
+                      "(slower)", RuntimeWarning, stacklevel=2)
+        return False
     _built.add(key)
     try:
         marker.write_text("built by bareesa.varifold.build_keops_kernels\n")

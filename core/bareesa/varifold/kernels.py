@@ -75,6 +75,12 @@ def keops_available():
     return _KEOPS
 
 
+def disable_keops():
+    """Turn KeOps off for this process (``keops_available`` False from now on: the torch code paths)."""
+    global _KEOPS
+    _KEOPS = False
+
+
 def is_oriented(kernel):
     """Whether a kernel tells a face from its flipped copy (an odd term c1 t): then the scan's faces
     must be wound consistently with the template's."""
