@@ -462,3 +462,32 @@ def test_grid_runs_looked_up_in_its_table_are_the_ones_binary_search_finds():
         for a, b in zip(looked_up[:-1], searched[:-1]):
             assert torch.equal(a, b)
     assert Grid(torch.cat([y, torch.tensor([[500.0, 500.0, 500.0]], dtype=y.dtype)]), 0.05).first is None
+
+
+def test_keops_kernels_are_built_once_when_two_solves_ask_at_once(monkeypatch, tmp_path):
+    # the add-on runs solves side by side in threads: the second caller waits for the first's build (KeOps
+    # would otherwise compile the same formula twice into the same files) and then finds it done
+    import threading
+    import time
+
+    from bareesa.varifold import backends, kernels
+
+    calls = []
+
+    def slow(*args, **kwargs):
+        calls.append(threading.get_ident())
+        time.sleep(0.05)
+        return torch.zeros(4, 12, dtype=DT)
+
+    monkeypatch.setattr(kernels, "_KEOPS", True)
+    monkeypatch.setattr(backends, "_keops_sums", slow)
+    monkeypatch.setattr(backends, "_built", set())
+    monkeypatch.setattr(backends, "_built_marker", lambda dtype, device: tmp_path / "built")
+    results = []
+    threads = [threading.Thread(target=lambda: results.append(V.build_keops_kernels(DT))) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sorted(results) == [False, True] and len(calls) == len(backends.KEOPS_FORMULAS)
+    assert len(set(calls)) == 1 and (tmp_path / "built").exists()

@@ -9,6 +9,7 @@ puts on a pair (``FacePairs``, ``FeaturePairs``), with the sums that the gradien
 import hashlib
 import os
 import sys
+import threading
 import warnings
 from pathlib import Path
 
@@ -176,6 +177,7 @@ def _keops_sums(x, u, y, v, g, kind, grad, ranges=None):
 KEOPS_FORMULAS = ((lambda: FacePairs("binet"), False), (lambda: FacePairs("binet"), True),
                   (lambda: FeaturePairs(9), False), (lambda: FeaturePairs(9), True))
 _built = set()  # (dtype, device) whose formulas this process has evaluated or found built
+_building = threading.Lock()  # solves side by side in threads (the add-on's) build them once, one at a time
 
 
 def _built_marker(dtype, device):
@@ -202,6 +204,14 @@ def build_keops_kernels(dtype=torch.float64, device="cpu", announce=None):
     key = (dtype, str(device))
     if key in _built or not keops_available():
         return False
+    with _building:  # a second caller waits for the first and then finds them built
+        return _build(key, dtype, device, announce)
+
+
+def _build(key, dtype, device, announce):
+    """``build_keops_kernels`` once the lock is held."""
+    if key in _built or not keops_available():
+        return False
     marker = _built_marker(dtype, device)
     if marker.exists():
         _built.add(key)
@@ -222,7 +232,7 @@ def build_keops_kernels(dtype=torch.float64, device="cpu", announce=None):
         disable_keops()
         message = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         warnings.warn(f"KeOps cannot build its kernels here ({message[:200]}); using torch's sums instead "
-                      "(slower)", RuntimeWarning, stacklevel=2)
+                      "(slower)", RuntimeWarning, stacklevel=3)
         return False
     _built.add(key)
     try:
