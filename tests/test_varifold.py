@@ -477,17 +477,29 @@ def test_keops_kernels_are_built_once_when_two_solves_ask_at_once(monkeypatch, t
     def slow(*args, **kwargs):
         calls.append(threading.get_ident())
         time.sleep(0.05)
-        return torch.zeros(4, 12, dtype=DT)
+        return torch.zeros(4, 12, dtype=DT)  # (any width: the engine only places the rows)
 
     monkeypatch.setattr(kernels, "_KEOPS", True)
     monkeypatch.setattr(backends, "_keops_sums", slow)
     monkeypatch.setattr(backends, "_built", set())
-    monkeypatch.setattr(backends, "_built_marker", lambda dtype, device: tmp_path / "built")
+    monkeypatch.setattr(backends, "_built_marker", lambda dtype, device, formulas: tmp_path / "built")
     results = []
     threads = [threading.Thread(target=lambda: results.append(V.build_keops_kernels(DT))) for _ in range(2)]
     for t in threads:
         t.start()
     for t in threads:
         t.join()
-    assert sorted(results) == [False, True] and len(calls) == len(backends.KEOPS_FORMULAS)
+    assert sorted(results) == [False, True] and len(calls) == len(backends.keops_formulas())
     assert len(set(calls)) == 1 and (tmp_path / "built").exists()
+
+
+def test_the_keops_formulas_built_follow_the_kernels_of_the_levels():
+    # binet's cells carry 9 numbers, linear's 3 (a noisy scan's finest level): both are built when both are used;
+    # the face sums take a kernel's coefficients as arguments, so one pair serves every kernel
+    from bareesa.varifold import backends
+
+    names = lambda kernels: backends._formula_names(backends.keops_formulas(kernels))  # noqa: E731
+    assert names(("binet",)) == ("FacePairs", "FacePairs+grad", "FeaturePairs9", "FeaturePairs9+grad")
+    both = names(("binet", "binet", "binet", "linear"))
+    assert both == names(("binet+linear",)) and set(both) - set(names(("binet",))) == {"FeaturePairs3",
+                                                                                        "FeaturePairs3+grad"}

@@ -365,7 +365,7 @@ def register(basis, scan_verts, scan_faces, *, schedule=None, prealign=True, lan
                                   refine_transform, dtype, device, monitor)
     lo = PREALIGN_FRACTION if prealign else 0.0
     if backend != "dense":  # KeOps builds its kernels at their first use on a machine: say so, not in a level
-        build_keops_kernels(dtype, device, announce=lambda: monitor.report(lo, KEOPS_BUILD_MESSAGE))
+        build_keops_kernels(dtype, device, kernels, announce=lambda: monitor.report(lo, KEOPS_BUILD_MESSAGE))
     used = sv if face_w is None else sv[np.unique(sf[face_w > 0])]
     # with pose prototypes the pre-alignment's ranking decides the first fit (see the module docstring),
     # unless it cannot tell the best candidates apart

@@ -16,6 +16,7 @@ from pathlib import Path
 import torch
 
 from .kernels import KEOPS_CPU_FLAGS, KERNELS, default_cutoff, disable_keops, keops_available
+from .measure import face_features
 
 DENSE_CHUNK_BYTES = 256 * 2**20
 CELL_FRACTION = 0.25      # grid cell size of the "j" measure, in units of the cutoff
@@ -171,28 +172,38 @@ def _keops_sums(x, u, y, v, g, kind, grad, ranges=None):
     return kind.keops(K, d, ui, vj, C, grad).sum(dim=1, ranges=ranges)
 
 
-#: The KeOps formulas the losses use: face sums and cell-feature sums (``cell_features``' binet tensors, 9
-#: numbers a cell), each with and without the gradient's sums; a kernel's coefficients are arguments, not
-#: part of a formula (so binet, linear and the oriented kernels share one)
-KEOPS_FORMULAS = ((lambda: FacePairs("binet"), False), (lambda: FacePairs("binet"), True),
-                  (lambda: FeaturePairs(9), False), (lambda: FeaturePairs(9), True))
-_built = set()  # (dtype, device) whose formulas this process has evaluated or found built
+def keops_formulas(kernels=("binet",)):
+    """The KeOps formulas the losses use with these kernels (names, or names joined by "+"): face sums, and
+    cell-feature sums of each kernel's features (binet's 9 numbers a cell, linear's 3, constant's 1), each
+    with and without the gradient's sums; a kernel's coefficients are arguments, not part of a formula, so
+    the face sums of every kernel share one -> [(kind, grad)]."""
+    probe = torch.ones(1, 3, dtype=torch.float64), torch.ones(1, dtype=torch.float64)
+    dims = sorted({face_features(*probe, name).shape[1] for k in kernels for name in k.split("+")}, reverse=True)
+    return [(FacePairs("binet"), grad) for grad in (False, True)] + [
+        (FeaturePairs(dim), grad) for dim in dims for grad in (False, True)]
+
+
+_built = set()  # (dtype, device, formulas) this process has evaluated or found built
 _building = threading.Lock()  # solves side by side in threads (the add-on's) build them once, one at a time
 
 
-def _built_marker(dtype, device):
+def _formula_names(formulas):
+    return tuple(f"{type(kind).__name__}{getattr(kind, 'dim', '')}{'+grad' if grad else ''}" for kind, grad in formulas)
+
+
+def _built_marker(dtype, device, formulas):
     """The file in KeOps' build folder that says these formulas were built for this environment (its
     Python, KeOps' flags, dtype and device): KeOps' binaries are per environment."""
     import pykeops
 
     tag = hashlib.sha1(repr((sys.prefix, sys.version, pykeops.__version__, os.environ.get("CXXFLAGS"),
-                             KEOPS_CPU_FLAGS, [f"{type(m()).__name__}{g}" for m, g in KEOPS_FORMULAS],
-                             str(dtype), device.type)).encode()).hexdigest()[:16]
+                             KEOPS_CPU_FLAGS, _formula_names(formulas), str(dtype),
+                             device.type)).encode()).hexdigest()[:16]
     return Path(pykeops.get_build_folder()) / f"bareesa_kernels_{tag}.built"
 
 
-def build_keops_kernels(dtype=torch.float64, device="cpu", announce=None):
-    """Evaluate each of KEOPS_FORMULAS once on a few points of ``dtype`` on ``device``, as the losses sum
+def build_keops_kernels(dtype=torch.float64, device="cpu", kernels=("binet",), announce=None):
+    """Evaluate each of ``keops_formulas(kernels)`` once on a few points of ``dtype`` on ``device``, as the losses sum
     them there (block-sparse on the CPU, "truncated"; whole on a GPU, "keops"), so that KeOps compiles now
     what it has not built for this environment yet (~20 s for the four, at their first use on a machine)
     instead of in the middle of a solve; then leaves a marker in KeOps' build folder, and later processes
@@ -201,18 +212,19 @@ def build_keops_kernels(dtype=torch.float64, device="cpu", announce=None):
     the process with a warning, and the solvers use their torch sums. -> whether this call evaluated them
     (False: KeOps unavailable or turned off, or built before)."""
     device = torch.device(device)
-    key = (dtype, str(device))
+    formulas = keops_formulas(kernels)
+    key = (dtype, str(device), _formula_names(formulas))
     if key in _built or not keops_available():
         return False
     with _building:  # a second caller waits for the first and then finds them built
-        return _build(key, dtype, device, announce)
+        return _build(key, dtype, device, formulas, announce)
 
 
-def _build(key, dtype, device, announce):
+def _build(key, dtype, device, formulas, announce):
     """``build_keops_kernels`` once the lock is held."""
     if key in _built or not keops_available():
         return False
-    marker = _built_marker(dtype, device)
+    marker = _built_marker(dtype, device, formulas)
     if marker.exists():
         _built.add(key)
         return False
@@ -223,10 +235,10 @@ def _build(key, dtype, device, announce):
     weights = torch.ones(4, dtype=dtype, device=device)
     features = torch.cat([x, x, x], 1)
     try:
-        for make, grad in KEOPS_FORMULAS:
-            kind = make()
+        for kind, grad in formulas:
             engine = Engine("keops" if device.type == "cuda" else "truncated", 1.0, kind, 10.0, use_keops=True)
-            u, v = (normals, (normals, weights)) if isinstance(kind, FacePairs) else (features, (features,))
+            cells = features[:, :getattr(kind, "dim", 0)]
+            u, v = (normals, (normals, weights)) if isinstance(kind, FacePairs) else (cells, (cells,))
             engine.sums(x, u, x, v, grad)
     except Exception as err:  # noqa: BLE001  (KeOps' compiler errors have no common type)
         disable_keops()
