@@ -188,7 +188,9 @@ _building = threading.Lock()  # solves side by side in threads (the add-on's) bu
 
 
 def _formula_names(formulas):
-    return tuple(f"{type(kind).__name__}{getattr(kind, 'dim', '')}{'+grad' if grad else ''}" for kind, grad in formulas)
+    """Names of formulas [(kind, grad)], e.g. ("FacePairs", "FeaturePairs9+grad")."""
+    return tuple(f"{type(kind).__name__}{getattr(kind, 'dim', '')}{'+grad' if grad else ''}"
+                 for kind, grad in formulas)
 
 
 def _built_marker(dtype, device, formulas):
@@ -203,9 +205,9 @@ def _built_marker(dtype, device, formulas):
 
 
 def build_keops_kernels(dtype=torch.float64, device="cpu", kernels=("binet",), announce=None):
-    """Evaluate each of ``keops_formulas(kernels)`` once on a few points of ``dtype`` on ``device``, as the losses sum
-    them there (block-sparse on the CPU, "truncated"; whole on a GPU, "keops"), so that KeOps compiles now
-    what it has not built for this environment yet (~20 s for the four, at their first use on a machine)
+    """Evaluate each of ``keops_formulas(kernels)`` once on a few points of ``dtype`` on ``device``, as the
+    losses sum them there (block-sparse on the CPU, "truncated"; whole on a GPU, "keops"), so that KeOps
+    compiles now what it has not built for this environment yet (~5 s each, at their first use on a machine)
     instead of in the middle of a solve; then leaves a marker in KeOps' build folder, and later processes
     find it and do nothing. announce: called first when they are to be evaluated (e.g. to say so on a
     progress bar). Where KeOps cannot build them (no C++ compiler, a broken toolchain) it is turned off for
