@@ -19,6 +19,10 @@ from .kernels import KEOPS_CPU_FLAGS, KERNELS, default_cutoff, disable_keops, ke
 from .measure import face_features
 
 DENSE_CHUNK_BYTES = 256 * 2**20
+#: KeOps sums with the gradient's sums also where only the values are needed (a target's self term, a
+#: screening score) and keeps the values' columns: each formula KeOps builds at its first use on a machine
+#: costs ~5 s of compiling, and the values alone would double their number for a few calls a registration
+KEOPS_GRAD = True
 CELL_FRACTION = 0.25      # grid cell size of the "j" measure, in units of the cutoff
 CLUSTER_FRACTION = 0.5    # cluster size of the "i" measure, in units of the cutoff
 TABLE_CELLS_PER_POINT = 16  # a grid keeps a table of where each cell's points begin up to this many cells a point
@@ -175,12 +179,11 @@ def _keops_sums(x, u, y, v, g, kind, grad, ranges=None):
 def keops_formulas(kernels=("binet",)):
     """The KeOps formulas the losses use with these kernels (names, or names joined by "+"): face sums, and
     cell-feature sums of each kernel's features (binet's 9 numbers a cell, linear's 3, constant's 1), each
-    with and without the gradient's sums; a kernel's coefficients are arguments, not part of a formula, so
-    the face sums of every kernel share one -> [(kind, grad)]."""
+    with the gradient's sums (``KEOPS_GRAD``); a kernel's coefficients are arguments, not part of a formula,
+    so the face sums of every kernel share one -> [(kind, grad)]."""
     probe = torch.ones(1, 3, dtype=torch.float64), torch.ones(1, dtype=torch.float64)
     dims = sorted({face_features(*probe, name).shape[1] for k in kernels for name in k.split("+")}, reverse=True)
-    return [(FacePairs("binet"), grad) for grad in (False, True)] + [
-        (FeaturePairs(dim), grad) for dim in dims for grad in (False, True)]
+    return [(FacePairs("binet"), True)] + [(FeaturePairs(dim), True) for dim in dims]
 
 
 _built = set()  # (dtype, device, formulas) this process has evaluated or found built
@@ -207,9 +210,9 @@ def _built_marker(dtype, device, formulas):
 def build_keops_kernels(dtype=torch.float64, device="cpu", kernels=("binet",), announce=None):
     """Evaluate each of ``keops_formulas(kernels)`` once on a few points of ``dtype`` on ``device``, as the
     losses sum them there (block-sparse on the CPU, "truncated"; whole on a GPU, "keops"), so that KeOps
-    compiles now what it has not built for this environment yet (~5 s each, at their first use on a machine)
-    instead of in the middle of a solve; then leaves a marker in KeOps' build folder, and later processes
-    find it and do nothing. announce: called first when they are to be evaluated (e.g. to say so on a
+    compiles now what it has not built for this environment yet (~5 s each, 2 for binet levels, at their first
+    use on a machine) instead of in the middle of a solve; then leaves a marker in KeOps' build folder, and
+    later processes find it and do nothing. announce: called first when they are to be evaluated (e.g. to say so on a
     progress bar). Where KeOps cannot build them (no C++ compiler, a broken toolchain) it is turned off for
     the process with a warning, and the solvers use their torch sums. -> whether this call evaluated them
     (False: KeOps unavailable or turned off, or built before)."""
@@ -439,9 +442,10 @@ class Engine:
         if self.backend == "dense":
             self.pairs += x.shape[0] * y.shape[0]
             return _dense_sums(x, u, y, v, self.g, self.kind, grad)
+        width = self.kind.width(grad)
         if self.backend == "keops":
             self.pairs += x.shape[0] * y.shape[0]
-            return _keops_sums(x, u, y, v, self.g, self.kind, grad)
+            return _keops_sums(x, u, y, v, self.g, self.kind, grad or KEOPS_GRAD)[:, :width]
         if kept is not None:
             grid, (perm_i, ranges_i, slices, runs, owner, pairs) = kept.get(x, y, self.cutoff, grid)
         else:
@@ -454,7 +458,7 @@ class Engine:
         if self.use_keops:
             i32 = lambda t: t.to(torch.int32).contiguous()  # noqa: E731
             rng = (i32(ranges_i), i32(slices), i32(runs)) * 2   # axis-0 half unused (no KeOps autograd)
-            F = _keops_sums(xs, us, ys, vs, self.g, self.kind, grad, ranges=rng)
+            F = _keops_sums(xs, us, ys, vs, self.g, self.kind, grad or KEOPS_GRAD, ranges=rng)[:, :width]
         else:
             F = _truncated_tiles(xs, us, ys, vs, self.g, self.kind, grad, ranges_i, runs, owner)
         out = torch.empty_like(F)
