@@ -167,6 +167,8 @@ def main(argv=None):
     if set(args.skip) >= {"registration", "interpolation", "random", "ablation", "sheet"}:  # the real body only
         results["real_body"] = real_body_rows((args.basis, *args.old), n=args.real)
         (args.out / "human_accuracy_real.json").write_text(json.dumps(results, indent=2) + "\n")
+        if args.card:
+            write_card(args.basis, results)
         return
     if set(args.skip) >= {"registration", "interpolation", "ablation", "sheet"}:  # random bodies: no Anny
         gen = rests = every_frame = seqs = None
@@ -207,19 +209,22 @@ def main(argv=None):
         results["interpolation"] = rows
     (args.out / "human_accuracy.json").write_text(json.dumps(results, indent=2) + "\n")
     if args.card:
-        from bench.humanoid_accuracy import write_card_accuracy
+        write_card(args.basis, results)
 
-        write_card_accuracy(args.basis, {k: v for k, v in results.items() if k in ("registration", "interpolation",
-                                                                                   "ablation")},
-                            measured_by="python -m bench.human_accuracy --card")
-        from bareesa.basis_io import resolve_basis_path
 
-        path = resolve_basis_path(args.basis).with_suffix(".json")
-        card = json.loads(path.read_text())
-        for key in ("random_bodies", "real_body"):
-            if key in results:
-                card["accuracy"][key] = results[key]
-        path.write_text(json.dumps(card, indent=2) + "\n")
+def write_card(basis, results):
+    """Write the parts measured (``results``' keys) into the basis' card, leaving the others as they were."""
+    from bareesa.basis_io import resolve_basis_path
+    from bench.humanoid_accuracy import write_card_accuracy
+
+    write_card_accuracy(basis, {k: v for k, v in results.items() if k in ("registration", "interpolation", "ablation")},
+                        measured_by="python -m bench.human_accuracy --card")
+    path = resolve_basis_path(basis).with_suffix(".json")
+    card = json.loads(path.read_text())
+    for key in ("random_bodies", "real_body"):
+        if key in results:
+            card["accuracy"][key] = results[key]
+    path.write_text(json.dumps(card, indent=2) + "\n")
 
 
 if __name__ == "__main__":
