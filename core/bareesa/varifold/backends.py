@@ -19,10 +19,6 @@ from .kernels import KEOPS_CPU_FLAGS, KERNELS, default_cutoff, disable_keops, ke
 from .measure import face_features
 
 DENSE_CHUNK_BYTES = 256 * 2**20
-#: KeOps sums with the gradient's sums also where only the values are needed (a target's self term, a
-#: screening score) and keeps the values' columns: each formula KeOps builds at its first use on a machine
-#: costs ~5 s of compiling, and the values alone would double their number for a few calls a registration
-KEOPS_GRAD = True
 CELL_FRACTION = 0.25      # grid cell size of the "j" measure, in units of the cutoff
 CLUSTER_FRACTION = 0.5    # cluster size of the "i" measure, in units of the cutoff
 TABLE_CELLS_PER_POINT = 16  # a grid keeps a table of where each cell's points begin up to this many cells a point
@@ -48,6 +44,9 @@ class FacePairs:
     """
 
     exact_differences = True   # the dense backend forms x_i - y_j (accurate in float32)
+    #: KeOps sums the values alone (a fixed target's self term, once a level) with the gradient's formula and
+    #: keeps their column: a formula costs ~5 s of compiling at its first use on a machine
+    values_formula = False
 
     def __init__(self, kernel):
         self.params = KERNELS[kernel]
@@ -103,6 +102,9 @@ class FeaturePairs:
 
     params = ()
     exact_differences = False  # coarse sigma: the dense backend expands |x - y|^2 (matrix products)
+    #: the values alone have their own KeOps formula: the screening scores sum them on fine cells, where the
+    #: gradient's formula costs a third more (0.185 against 0.14 s a score on a `human` scan)
+    values_formula = True
 
     def __init__(self, dim):
         self.dim = dim
@@ -179,11 +181,13 @@ def _keops_sums(x, u, y, v, g, kind, grad, ranges=None):
 def keops_formulas(kernels=("binet",)):
     """The KeOps formulas the losses use with these kernels (names, or names joined by "+"): face sums, and
     cell-feature sums of each kernel's features (binet's 9 numbers a cell, linear's 3, constant's 1), each
-    with the gradient's sums (``KEOPS_GRAD``); a kernel's coefficients are arguments, not part of a formula,
-    so the face sums of every kernel share one -> [(kind, grad)]."""
+    with the gradient's sums and, where the kind has one (``values_formula``), without; a kernel's
+    coefficients are arguments, not part of a formula, so the face sums of every kernel share one
+    -> [(kind, grad)]."""
     probe = torch.ones(1, 3, dtype=torch.float64), torch.ones(1, dtype=torch.float64)
     dims = sorted({face_features(*probe, name).shape[1] for k in kernels for name in k.split("+")}, reverse=True)
-    return [(FacePairs("binet"), True)] + [(FeaturePairs(dim), True) for dim in dims]
+    kinds = [FacePairs("binet")] + [FeaturePairs(dim) for dim in dims]
+    return [(kind, grad) for kind in kinds for grad in ((False, True) if kind.values_formula else (True,))]
 
 
 _built = set()  # (dtype, device, formulas) this process has evaluated or found built
@@ -210,7 +214,7 @@ def _built_marker(dtype, device, formulas):
 def build_keops_kernels(dtype=torch.float64, device="cpu", kernels=("binet",), announce=None):
     """Evaluate each of ``keops_formulas(kernels)`` once on a few points of ``dtype`` on ``device``, as the
     losses sum them there (block-sparse on the CPU, "truncated"; whole on a GPU, "keops"), so that KeOps
-    compiles now what it has not built for this environment yet (~5 s each, 2 for binet levels, at their first
+    compiles now what it has not built for this environment yet (~5 s each, 3 for binet levels, at their first
     use on a machine) instead of in the middle of a solve; then leaves a marker in KeOps' build folder, and
     later processes find it and do nothing. announce: called first when they are to be evaluated (e.g. to say so on a
     progress bar). Where KeOps cannot build them (no C++ compiler, a broken toolchain) it is turned off for
@@ -445,7 +449,7 @@ class Engine:
         width = self.kind.width(grad)
         if self.backend == "keops":
             self.pairs += x.shape[0] * y.shape[0]
-            return _keops_sums(x, u, y, v, self.g, self.kind, grad or KEOPS_GRAD)[:, :width]
+            return _keops_sums(x, u, y, v, self.g, self.kind, grad or not self.kind.values_formula)[:, :width]
         if kept is not None:
             grid, (perm_i, ranges_i, slices, runs, owner, pairs) = kept.get(x, y, self.cutoff, grid)
         else:
@@ -458,7 +462,8 @@ class Engine:
         if self.use_keops:
             i32 = lambda t: t.to(torch.int32).contiguous()  # noqa: E731
             rng = (i32(ranges_i), i32(slices), i32(runs)) * 2   # axis-0 half unused (no KeOps autograd)
-            F = _keops_sums(xs, us, ys, vs, self.g, self.kind, grad or KEOPS_GRAD, ranges=rng)[:, :width]
+            F = _keops_sums(xs, us, ys, vs, self.g, self.kind, grad or not self.kind.values_formula,
+                            ranges=rng)[:, :width]
         else:
             F = _truncated_tiles(xs, us, ys, vs, self.g, self.kind, grad, ranges_i, runs, owner)
         out = torch.empty_like(F)
