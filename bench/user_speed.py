@@ -2,7 +2,7 @@
 the add-on call it, every stage on (pre-alignment, pose candidates, refinement).
 
 Rows: first use (a small scan registered first: KeOps builds its kernels at their first use on a
-machine, ~10 s, timed apart so that the rows after it time the solves alone); registration of a ~50k-face
+machine, ~15 s, timed apart so that the rows after it time the solves alone); registration of a ~50k-face
 simulated scan (remeshed, noisy, holed, arbitrary rotation and scale) against its true vertices;
 interpolation between two known codes at T = 24 frames; symmetric matching of two raw scans;
 extrapolation of 10 frames; 20 random bodies. Each with wall
@@ -64,10 +64,10 @@ def timed_row(task, fn, outcome):
 
 
 #: The first-use row registers a scan this coarse (~5k faces on the human): KeOps builds its kernels at
-#: their first use on a machine (or in a new environment), ~10 s (~20 s before they carried the gradient's
-#: sums only), and a small scan needs the same ones as the registrations after it (measured with an empty
-#: KeOps cache: 28.2 s for the small scan, then 8.8 s for the 60,928-face scan, 9.3 s for it again;
-#: bench/README)
+#: their first use on a machine (or in a new environment), ~15 s (~20 s before the faces' values came from
+#: the gradient's formula), and a small scan needs the same ones as the registrations after it (measured
+#: with an empty KeOps cache: 28.2 s for the small scan, then 8.8 s for the 60,928-face scan, 9.3 s for it
+#: again; bench/README)
 FIRST_USE_RESOLUTION = 0.03
 
 

@@ -81,8 +81,8 @@ MIN_SCAN_FACES = 100
 #: below this share of the template's is refused as flat (a sheet, a wall, a single view of a plane).
 MIN_FLATNESS_RATIO = 0.02
 #: What the progress says while KeOps' kernels are loaded, or built at their first use on a machine
-#: (``varifold.build_keops_kernels``; the bar stands still for ~10 s then)
-KEOPS_BUILD_MESSAGE = "registration: KeOps' kernels (built at their first use on a machine, ~10 s)"
+#: (``varifold.build_keops_kernels``; the bar stands still for ~15 s then)
+KEOPS_BUILD_MESSAGE = "registration: KeOps' kernels (built at their first use on a machine, ~15 s)"
 #: ``Basis.extras`` key of the surface moments of the decoded pose prototypes (``prealign.moment_table``),
 #: with the codes they are of under this key + "_codes" (``prepare_basis``): 33 surface moments cost ~0.1 s
 #: of every registration's pre-alignment
