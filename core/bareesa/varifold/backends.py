@@ -446,10 +446,11 @@ class Engine:
         if self.backend == "dense":
             self.pairs += x.shape[0] * y.shape[0]
             return _dense_sums(x, u, y, v, self.g, self.kind, grad)
-        width = self.kind.width(grad)
+        # KeOps' formula: with the gradient's sums where the kind has no values-only one (their first columns)
+        width, keops_grad = self.kind.width(grad), grad or not self.kind.values_formula
         if self.backend == "keops":
             self.pairs += x.shape[0] * y.shape[0]
-            return _keops_sums(x, u, y, v, self.g, self.kind, grad or not self.kind.values_formula)[:, :width]
+            return _keops_sums(x, u, y, v, self.g, self.kind, keops_grad)[:, :width]
         if kept is not None:
             grid, (perm_i, ranges_i, slices, runs, owner, pairs) = kept.get(x, y, self.cutoff, grid)
         else:
@@ -462,8 +463,7 @@ class Engine:
         if self.use_keops:
             i32 = lambda t: t.to(torch.int32).contiguous()  # noqa: E731
             rng = (i32(ranges_i), i32(slices), i32(runs)) * 2   # axis-0 half unused (no KeOps autograd)
-            F = _keops_sums(xs, us, ys, vs, self.g, self.kind, grad or not self.kind.values_formula,
-                            ranges=rng)[:, :width]
+            F = _keops_sums(xs, us, ys, vs, self.g, self.kind, keops_grad, ranges=rng)[:, :width]
         else:
             F = _truncated_tiles(xs, us, ys, vs, self.g, self.kind, grad, ranges_i, runs, owner)
         out = torch.empty_like(F)
