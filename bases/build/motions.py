@@ -9,11 +9,15 @@ motions also move ``toes.L``, ``fingers.L`` and ``thumb.L``); a builder maps the
 onto its rig. Conventions: Z-up, facing -Y, left = +X; flexion of a downward bone
 about -X moves it forward (-Y); abduction of the left arm/leg is about -Y; the
 right side mirrors the left (axis (x, y, z) -> (x, -y, -z)).
+
+The motions are data (``MOTIONS``): each is a table of curves, evaluated by ``pose_at``.
 """
 
 import math
+from dataclasses import dataclass, field
 
 X, Y, Z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
+AXES = {"X": X, "Y": Y, "Z": Z}
 
 
 def _side(side, axis, angle):
@@ -30,232 +34,221 @@ def _pos(x):
     return max(0.0, x)
 
 
-def pose_at(motion, u):
-    """Rotations (armature rest axes, degrees) and root offset of a motion at phase u in [0, 1].
+# ------------------------------------------------------------------------------ the table
+#
+# A motion: ``let`` names computed in order from the phase ``u``; ``tracks`` in order, each
+# (bone, axis, degrees) appending one rotation to that bone, or a ``Sides`` block; ``root``
+# the root offset (metres). Values are Python expressions over ``u``, the names before them
+# and ``FUNCTIONS``. A bone ``name.*`` is both sides, the right one mirrored (the angle given
+# for the left). In a ``Sides`` block the tracks run once per side, in the order given, with
+# that side's names; ``{s}`` in a bone is the side and an axis ``~Y`` is Y mirrored to it.
 
-    -> ({bone: [(axis, degrees), ...]}, (dx, dy, dz) metres). Conventions: flexion of a
-    downward bone about -X moves it forward (-Y); abduction of the left arm/leg is about -Y.
-    """
-    r, root = {}, (0.0, 0.0, 0.0)
 
-    def add(bone, axis, deg):
-        r.setdefault(bone, []).append((axis, deg))
+@dataclass(frozen=True)
+class Sides:
+    """Tracks run once per side: side -> {name: expression}, then ``let`` and ``tracks`` per side."""
+    values: dict
+    tracks: tuple
+    let: dict = field(default_factory=dict)
 
-    def both(bone, axis, deg):
-        for s in "LR":
-            ax, a = _side(s, axis, deg)
-            add(f"{bone}.{s}", ax, a)
 
-    s1 = math.sin(2 * math.pi * u)
-    if motion == "arms_raise_side":  # left arm overhead, then the right one, then both to the side
-        for s, (lo, hi, deg) in (("L", (0, 1 / 3, 150)), ("R", (1 / 3, 2 / 3, 150))):
-            ax, a = _side(s, Y, -deg * _bump(min(1.0, max(0.0, (u - lo) / (hi - lo)))))
-            add(f"upper_arm.{s}", ax, a)
-        both("upper_arm", Y, -95 * _bump(max(0.0, 3 * u - 2)))
-    elif motion == "arms_raise_front":
-        both("upper_arm", X, -130 * _bump(u))
-        both("upper_arm", Y, 25 * _bump(u))
-    elif motion == "punch":
-        for s, ph in (("L", 1.0), ("R", -1.0)):
-            p = _pos(ph * math.sin(4 * math.pi * u)) ** 1.5
-            ax, a = _side(s, Y, 25)
-            add(f"upper_arm.{s}", ax, a * min(1, 4 * u, 4 * (1 - u)))
-            add(f"upper_arm.{s}", X, -(45 + 40 * p) * min(1, 4 * u, 4 * (1 - u)))
-            add(f"forearm.{s}", X, -(110 * (1 - p)) * min(1, 4 * u, 4 * (1 - u)))
-    elif motion == "jumping_jacks":
-        a = _bump(u, 2)
-        both("upper_arm", Y, -120 * a)
-        both("thigh", Y, -14 * a)
-        root = (0.0, 0.0, 0.06 * math.sin(2 * math.pi * u) ** 2)
-    elif motion == "squat":
-        a = _bump(u)
-        hip, knee = 95 * a, 125 * a
-        both("thigh", X, -hip)
-        both("shin", X, knee)
-        both("foot", X, -(knee - hip))
-        add("spine", X, 25 * a)
-        add("chest", X, 10 * a)
-        both("upper_arm", X, -80 * a)
-        drop = 0.43 * (1 - math.cos(math.radians(hip))) + 0.41 * (1 - math.cos(math.radians(knee - hip)))
-        root = (0.0, 0.0, -drop)
-    elif motion == "knee_lift":
-        for s, ph in (("L", 1.0), ("R", -1.0)):
-            p = _pos(ph * math.sin(4 * math.pi * u))
-            add(f"thigh.{s}", X, -95 * p)
-            add(f"shin.{s}", X, 100 * p)
-    elif motion == "one_leg_jump":
-        a = min(1.0, 5 * u, 5 * (1 - u))
-        add("thigh.L", X, -30 * a)
-        add("shin.L", X, 95 * a)
-        hop = abs(math.sin(3 * math.pi * u)) * a
-        add("thigh.R", X, -15 * (1 - hop) * a)
-        add("shin.R", X, 25 * (1 - hop) * a)
-        both("upper_arm", Y, -30 * a)
-        root = (0.0, 0.0, 0.09 * hop)
-    elif motion == "run_in_place":
-        a = min(1.0, 4 * u, 4 * (1 - u))
-        for s, ph in (("L", 1.0), ("R", -1.0)):
-            p = ph * math.sin(4 * math.pi * u)
-            add(f"thigh.{s}", X, -70 * _pos(p) * a)
-            add(f"shin.{s}", X, 110 * _pos(p) * a)
-            add(f"upper_arm.{s}", X, 40 * p * a)
-            add(f"forearm.{s}", X, -85 * a)
-        root = (0.0, 0.0, 0.03 * abs(math.sin(4 * math.pi * u)) * a)
-    elif motion == "torso_twist":
-        add("spine", Z, 28 * s1)
-        add("chest", Z, 22 * s1)
-        add("neck", Z, 10 * s1)
-        both("upper_arm", Y, -25 * _bump(u))
-        both("forearm", X, -60 * _bump(u))
-    elif motion == "torso_bend":
-        fwd, side = _bump(2 * u) if u < 0.5 else 0.0, math.sin(2 * math.pi * u) if u >= 0.5 else 0.0
-        add("spine", X, 45 * fwd)
-        add("chest", X, 25 * fwd)
-        add("spine", Y, 20 * side)
-        add("chest", Y, 15 * side)
-    elif motion == "head_turn":
-        turn = math.sin(2 * math.pi * u) if u < 0.5 else 0.0
-        nod = math.sin(2 * math.pi * u) if u >= 0.5 else 0.0
-        add("neck", Z, 35 * turn)
-        add("head", Z, 30 * turn)
-        add("neck", X, 25 * nod)
-        add("head", X, 20 * nod)
-    elif motion == "shake_arms":
-        a = min(1.0, 5 * u, 5 * (1 - u))
-        both("upper_arm", Y, -(35 + 18 * math.sin(12 * math.pi * u)) * a)
-        both("upper_arm", X, -20 * math.sin(12 * math.pi * u + 1.0) * a)
-        both("forearm", X, -(35 + 30 * math.sin(12 * math.pi * u + 2.0)) * a)
-        both("hand", X, 30 * math.sin(12 * math.pi * u + 3.0) * a)
-    elif motion == "biceps_curl":
-        for s, ph in (("L", 0.0), ("R", 0.5)):
-            p = _bump(u + ph, 2)
-            ax, a = _side(s, Y, 30)
-            add(f"upper_arm.{s}", ax, a)
-            add(f"forearm.{s}", X, -135 * p)
-            add(f"hand.{s}", X, -20 * p)
-    elif motion == "side_steps":
-        for s, ph in (("L", 1.0), ("R", -1.0)):
-            p = _pos(ph * math.sin(4 * math.pi * u))
-            ax, a = _side(s, Y, -30 * p)
-            add(f"thigh.{s}", ax, a)
-            add(f"shin.{s}", X, 30 * p)
-        both("upper_arm", Y, 15 * _bump(u))
-    elif motion == "wave":  # held out
-        a = _bump(u) ** 0.5
-        ax, ang = _side("R", Y, -130 * a)
-        add("upper_arm.R", ax, ang)
-        add("forearm.R", X, -(55 + 35 * math.sin(8 * math.pi * u)) * a)
-        add("hand.R", Y, 20 * math.sin(8 * math.pi * u) * a)
-        add("neck", Z, -15 * a)
-    elif motion == "lunge":  # held out
-        a = _bump(u)
-        add("thigh.L", X, -75 * a)
-        add("shin.L", X, 80 * a)
-        add("foot.L", X, -5 * a)
-        add("thigh.R", X, 25 * a)
-        add("shin.R", X, 70 * a)
-        add("foot.R", X, -50 * a)
-        add("spine", X, -5 * a)
-        root = (0.0, -0.1 * a, -0.2 * a)
-    elif motion == "walk":  # walking in place (a treadmill): legs and arms swing in opposition
-        a = min(1.0, 4 * u, 4 * (1 - u))
-        for s, ph in (("L", 1.0), ("R", -1.0)):
-            p = ph * math.sin(4 * math.pi * u)
-            add(f"thigh.{s}", X, -30 * p * a)
-            add(f"shin.{s}", X, 45 * _pos(-math.cos(4 * math.pi * u + ph * math.pi / 2)) * a)
-            add(f"foot.{s}", X, -10 * p * a)
-            add(f"upper_arm.{s}", X, 25 * p * a)
-            add(f"forearm.{s}", X, -(15 + 10 * _pos(-p)) * a)
-        add("spine", Z, 6 * math.sin(4 * math.pi * u) * a)
-    elif motion == "run":  # running in place: high knees behind, bent elbows, a flight phase
-        a = min(1.0, 4 * u, 4 * (1 - u))
-        for s, ph in (("L", 1.0), ("R", -1.0)):
-            p = ph * math.sin(6 * math.pi * u)
-            add(f"thigh.{s}", X, (-55 * _pos(p) + 20 * _pos(-p)) * a)
-            add(f"shin.{s}", X, (40 + 70 * _pos(-p)) * a)
-            add(f"upper_arm.{s}", X, 45 * p * a)
-            add(f"forearm.{s}", X, -90 * a)
-        add("spine", X, 10 * a)
-        root = (0.0, 0.0, 0.05 * abs(math.sin(6 * math.pi * u)) * a)
-    elif motion == "sit_down":  # sit on an unseen chair and stand up again
-        a = _bump(u) ** 0.7
-        both("thigh", X, -90 * a)
-        both("shin", X, 90 * a)
-        add("spine", X, 20 * a * (1 - a) * 4)
-        both("upper_arm", X, -25 * a)
-        both("forearm", X, -40 * a)
-    elif motion == "crouch":  # a deep crouch on the toes, arms forward for balance
-        a = _bump(u)
-        hip, knee = 115 * a, 140 * a
-        both("thigh", X, -hip)
-        both("shin", X, knee)
-        both("foot", X, -(knee - hip) + 15 * a)
-        add("spine", X, 35 * a)
-        both("upper_arm", X, -70 * a)
-        both("forearm", X, -20 * a)
-    elif motion == "reach":  # reach up and forward with the right hand, then up with the left
-        for s, lo in (("R", 0.0), ("L", 0.5)):
-            p = _bump(min(1.0, max(0.0, (u - lo) / 0.5)))
-            add(f"upper_arm.{s}", X, -150 * p)
-            add(f"forearm.{s}", X, -10 * p)
-            ax, ang = _side(s, Z, 10 * p)
-            add("spine", ax, ang)
-            ax, ang = _side(s, Y, 8 * p)
-            add("chest", ax, ang)
-    elif motion == "jump":  # crouch, take off with the arms up, land, stand
-        load = _bump(min(1.0, u / 0.3)) if u < 0.3 else (_bump(min(1.0, (u - 0.6) / 0.3)) if 0.6 <= u < 0.9 else 0.0)
-        air = _bump((u - 0.3) / 0.3) if 0.3 <= u < 0.6 else 0.0
-        both("thigh", X, -70 * load - 10 * air)
-        both("shin", X, 90 * load + 15 * air)
-        both("foot", X, -20 * load + 25 * air)
-        add("spine", X, 25 * load)
-        both("upper_arm", X, 40 * load - 150 * air)
-        root = (0.0, 0.0, 0.25 * air)
-    elif motion == "dance":  # hips sway, arms up in turn, knees bounce, head follows
-        a = min(1.0, 4 * u, 4 * (1 - u))
-        sway = math.sin(4 * math.pi * u)
-        add("spine", Y, 10 * sway * a)
-        add("chest", Y, -8 * sway * a)
-        add("chest", Z, 12 * math.sin(2 * math.pi * u) * a)
-        for s, ph in (("L", 1.0), ("R", -1.0)):
-            p = _pos(ph * math.sin(4 * math.pi * u))
-            ax, ang = _side(s, Y, -(40 + 90 * p) * a)
-            add(f"upper_arm.{s}", ax, ang)
-            add(f"forearm.{s}", X, -(30 + 60 * (1 - p)) * a)
-            add(f"thigh.{s}", X, -25 * _bump(2 * u + 0.25 * (ph + 1)) * a)
-            add(f"shin.{s}", X, 40 * _bump(2 * u + 0.25 * (ph + 1)) * a)
-        add("neck", Z, 15 * sway * a)
-    elif motion == "feet_turn":  # toes out, up on the toes, toes in with the soles rolled in, toes curled
-        seg = [_bump(min(1.0, max(0.0, 4 * u - k))) for k in range(4)]
-        both("thigh", Z, 30 * seg[0] - 15 * seg[2])
-        both("foot", Z, 20 * seg[0] - 15 * seg[2])
-        both("foot", X, 35 * seg[1])
-        both("toes", X, -35 * seg[1] + 30 * seg[3])
-        both("foot", Y, 15 * seg[2] - 12 * seg[3])
-        both("thigh", Y, -8 * seg[3])
-    elif motion == "hand_gestures":  # fists, fingers spread and bent back, wrists flexed, hands cupped
-        seg = [_bump(min(1.0, max(0.0, 4 * u - k))) for k in range(4)]
-        both("fingers", X, 30 * seg[0] - 12 * seg[1] + 10 * seg[3])
-        both("thumb", X, 25 * seg[0] - 10 * seg[1])
-        both("fingers", Y, 15 * seg[3] - 8 * seg[1])
-        both("thumb", Y, 20 * seg[3])
-        both("hand", X, 40 * seg[2])
-        both("hand", Y, -20 * seg[2] + 10 * seg[1])
-        both("forearm", X, -30 * seg[2])
-    elif motion == "pick_up":  # bend at the hips and knees to pick something up from the floor
-        a = _bump(u)
-        add("spine", X, 55 * a)
-        add("chest", X, 30 * a)
-        add("neck", X, -20 * a)
-        both("thigh", X, -45 * a)
-        both("shin", X, 60 * a)
-        both("foot", X, -15 * a)
-        both("upper_arm", X, -60 * a)
-        both("forearm", X, -15 * a)
-    else:
-        raise KeyError(motion)
-    return r, root
+@dataclass(frozen=True)
+class Motion:
+    tracks: tuple
+    let: dict = field(default_factory=dict)
+    root: tuple = ("0.0", "0.0", "0.0")
 
+
+OPPOSED = {"L": {"ph": "1.0"}, "R": {"ph": "-1.0"}}  # the sides half a cycle apart
+RAMP = "min(1.0, 4 * u, 4 * (1 - u))"                 # in over the first quarter, out over the last
+SEGMENTS = "[bump(min(1.0, max(0.0, 4 * u - k))) for k in range(4)]"  # four bumps, one after the other
+
+MOTIONS = {
+    # left arm overhead, then the right one, then both to the side
+    "arms_raise_side": Motion(tracks=(
+        Sides({"L": {"lo": "0", "hi": "1 / 3", "deg": "150"}, "R": {"lo": "1 / 3", "hi": "2 / 3", "deg": "150"}},
+              (("upper_arm.{s}", "~Y", "-deg * bump(min(1.0, max(0.0, (u - lo) / (hi - lo))))"),)),
+        ("upper_arm.*", "Y", "-95 * bump(max(0.0, 3 * u - 2))"))),
+    "arms_raise_front": Motion(tracks=(
+        ("upper_arm.*", "X", "-130 * bump(u)"),
+        ("upper_arm.*", "Y", "25 * bump(u)"))),
+    "punch": Motion(tracks=(
+        Sides(OPPOSED, let={"p": "pos(ph * sin(4 * pi * u)) ** 1.5"}, tracks=(
+            ("upper_arm.{s}", "~Y", "25 * min(1, 4 * u, 4 * (1 - u))"),
+            ("upper_arm.{s}", "X", "-(45 + 40 * p) * min(1, 4 * u, 4 * (1 - u))"),
+            ("forearm.{s}", "X", "-(110 * (1 - p)) * min(1, 4 * u, 4 * (1 - u))"))),)),
+    "jumping_jacks": Motion(let={"a": "bump(u, 2)"}, root=("0.0", "0.0", "0.06 * sin(2 * pi * u) ** 2"), tracks=(
+        ("upper_arm.*", "Y", "-120 * a"),
+        ("thigh.*", "Y", "-14 * a"))),
+    "squat": Motion(
+        let={"a": "bump(u)", "hip": "95 * a", "knee": "125 * a"},
+        root=("0.0", "0.0", "-(0.43 * (1 - cos(radians(hip))) + 0.41 * (1 - cos(radians(knee - hip))))"),
+        tracks=(
+            ("thigh.*", "X", "-hip"),
+            ("shin.*", "X", "knee"),
+            ("foot.*", "X", "-(knee - hip)"),
+            ("spine", "X", "25 * a"),
+            ("chest", "X", "10 * a"),
+            ("upper_arm.*", "X", "-80 * a"))),
+    "knee_lift": Motion(tracks=(
+        Sides(OPPOSED, let={"p": "pos(ph * sin(4 * pi * u))"}, tracks=(
+            ("thigh.{s}", "X", "-95 * p"),
+            ("shin.{s}", "X", "100 * p"))),)),
+    "one_leg_jump": Motion(
+        let={"a": "min(1.0, 5 * u, 5 * (1 - u))", "hop": "abs(sin(3 * pi * u)) * a"},
+        root=("0.0", "0.0", "0.09 * hop"),
+        tracks=(
+            ("thigh.L", "X", "-30 * a"),
+            ("shin.L", "X", "95 * a"),
+            ("thigh.R", "X", "-15 * (1 - hop) * a"),
+            ("shin.R", "X", "25 * (1 - hop) * a"),
+            ("upper_arm.*", "Y", "-30 * a"))),
+    "run_in_place": Motion(let={"a": RAMP}, root=("0.0", "0.0", "0.03 * abs(sin(4 * pi * u)) * a"), tracks=(
+        Sides(OPPOSED, let={"p": "ph * sin(4 * pi * u)"}, tracks=(
+            ("thigh.{s}", "X", "-70 * pos(p) * a"),
+            ("shin.{s}", "X", "110 * pos(p) * a"),
+            ("upper_arm.{s}", "X", "40 * p * a"),
+            ("forearm.{s}", "X", "-85 * a"))),)),
+    "torso_twist": Motion(let={"s1": "sin(2 * pi * u)"}, tracks=(
+        ("spine", "Z", "28 * s1"),
+        ("chest", "Z", "22 * s1"),
+        ("neck", "Z", "10 * s1"),
+        ("upper_arm.*", "Y", "-25 * bump(u)"),
+        ("forearm.*", "X", "-60 * bump(u)"))),
+    "torso_bend": Motion(  # forward in the first half, to the sides in the second
+        let={"fwd": "bump(2 * u) if u < 0.5 else 0.0", "side": "sin(2 * pi * u) if u >= 0.5 else 0.0"},
+        tracks=(
+            ("spine", "X", "45 * fwd"),
+            ("chest", "X", "25 * fwd"),
+            ("spine", "Y", "20 * side"),
+            ("chest", "Y", "15 * side"))),
+    "head_turn": Motion(  # turn in the first half, nod in the second
+        let={"turn": "sin(2 * pi * u) if u < 0.5 else 0.0", "nod": "sin(2 * pi * u) if u >= 0.5 else 0.0"},
+        tracks=(
+            ("neck", "Z", "35 * turn"),
+            ("head", "Z", "30 * turn"),
+            ("neck", "X", "25 * nod"),
+            ("head", "X", "20 * nod"))),
+    "shake_arms": Motion(let={"a": "min(1.0, 5 * u, 5 * (1 - u))"}, tracks=(
+        ("upper_arm.*", "Y", "-(35 + 18 * sin(12 * pi * u)) * a"),
+        ("upper_arm.*", "X", "-20 * sin(12 * pi * u + 1.0) * a"),
+        ("forearm.*", "X", "-(35 + 30 * sin(12 * pi * u + 2.0)) * a"),
+        ("hand.*", "X", "30 * sin(12 * pi * u + 3.0) * a"))),
+    "biceps_curl": Motion(tracks=(
+        Sides({"L": {"ph": "0.0"}, "R": {"ph": "0.5"}}, let={"p": "bump(u + ph, 2)"}, tracks=(
+            ("upper_arm.{s}", "~Y", "30"),
+            ("forearm.{s}", "X", "-135 * p"),
+            ("hand.{s}", "X", "-20 * p"))),)),
+    "side_steps": Motion(tracks=(
+        Sides(OPPOSED, let={"p": "pos(ph * sin(4 * pi * u))"}, tracks=(
+            ("thigh.{s}", "~Y", "-30 * p"),
+            ("shin.{s}", "X", "30 * p"))),
+        ("upper_arm.*", "Y", "15 * bump(u)"))),
+    # held out
+    "wave": Motion(let={"a": "bump(u) ** 0.5"}, tracks=(
+        Sides({"R": {}}, (("upper_arm.{s}", "~Y", "-130 * a"),)),
+        ("forearm.R", "X", "-(55 + 35 * sin(8 * pi * u)) * a"),
+        ("hand.R", "Y", "20 * sin(8 * pi * u) * a"),
+        ("neck", "Z", "-15 * a"))),
+    "lunge": Motion(let={"a": "bump(u)"}, root=("0.0", "-0.1 * a", "-0.2 * a"), tracks=(
+        ("thigh.L", "X", "-75 * a"),
+        ("shin.L", "X", "80 * a"),
+        ("foot.L", "X", "-5 * a"),
+        ("thigh.R", "X", "25 * a"),
+        ("shin.R", "X", "70 * a"),
+        ("foot.R", "X", "-50 * a"),
+        ("spine", "X", "-5 * a"))),
+    # walking in place (a treadmill): legs and arms swing in opposition
+    "walk": Motion(let={"a": RAMP}, tracks=(
+        Sides(OPPOSED, let={"p": "ph * sin(4 * pi * u)"}, tracks=(
+            ("thigh.{s}", "X", "-30 * p * a"),
+            ("shin.{s}", "X", "45 * pos(-cos(4 * pi * u + ph * pi / 2)) * a"),
+            ("foot.{s}", "X", "-10 * p * a"),
+            ("upper_arm.{s}", "X", "25 * p * a"),
+            ("forearm.{s}", "X", "-(15 + 10 * pos(-p)) * a"))),
+        ("spine", "Z", "6 * sin(4 * pi * u) * a"))),
+    # running in place: high knees behind, bent elbows, a flight phase
+    "run": Motion(let={"a": RAMP}, root=("0.0", "0.0", "0.05 * abs(sin(6 * pi * u)) * a"), tracks=(
+        Sides(OPPOSED, let={"p": "ph * sin(6 * pi * u)"}, tracks=(
+            ("thigh.{s}", "X", "(-55 * pos(p) + 20 * pos(-p)) * a"),
+            ("shin.{s}", "X", "(40 + 70 * pos(-p)) * a"),
+            ("upper_arm.{s}", "X", "45 * p * a"),
+            ("forearm.{s}", "X", "-90 * a"))),
+        ("spine", "X", "10 * a"))),
+    # sit on an unseen chair and stand up again
+    "sit_down": Motion(let={"a": "bump(u) ** 0.7"}, tracks=(
+        ("thigh.*", "X", "-90 * a"),
+        ("shin.*", "X", "90 * a"),
+        ("spine", "X", "20 * a * (1 - a) * 4"),
+        ("upper_arm.*", "X", "-25 * a"),
+        ("forearm.*", "X", "-40 * a"))),
+    # a deep crouch on the toes, arms forward for balance
+    "crouch": Motion(let={"a": "bump(u)", "hip": "115 * a", "knee": "140 * a"}, tracks=(
+        ("thigh.*", "X", "-hip"),
+        ("shin.*", "X", "knee"),
+        ("foot.*", "X", "-(knee - hip) + 15 * a"),
+        ("spine", "X", "35 * a"),
+        ("upper_arm.*", "X", "-70 * a"),
+        ("forearm.*", "X", "-20 * a"))),
+    # reach up and forward with the right hand, then up with the left
+    "reach": Motion(tracks=(
+        Sides({"R": {"lo": "0.0"}, "L": {"lo": "0.5"}}, let={"p": "bump(min(1.0, max(0.0, (u - lo) / 0.5)))"},
+              tracks=(
+                  ("upper_arm.{s}", "X", "-150 * p"),
+                  ("forearm.{s}", "X", "-10 * p"),
+                  ("spine", "~Z", "10 * p"),
+                  ("chest", "~Y", "8 * p"))),)),
+    # crouch, take off with the arms up, land, stand
+    "jump": Motion(
+        let={"load": "bump(min(1.0, u / 0.3)) if u < 0.3 else "
+                     "(bump(min(1.0, (u - 0.6) / 0.3)) if 0.6 <= u < 0.9 else 0.0)",
+             "air": "bump((u - 0.3) / 0.3) if 0.3 <= u < 0.6 else 0.0"},
+        root=("0.0", "0.0", "0.25 * air"),
+        tracks=(
+            ("thigh.*", "X", "-70 * load - 10 * air"),
+            ("shin.*", "X", "90 * load + 15 * air"),
+            ("foot.*", "X", "-20 * load + 25 * air"),
+            ("spine", "X", "25 * load"),
+            ("upper_arm.*", "X", "40 * load - 150 * air"))),
+    # hips sway, arms up in turn, knees bounce, head follows
+    "dance": Motion(let={"a": RAMP, "sway": "sin(4 * pi * u)"}, tracks=(
+        ("spine", "Y", "10 * sway * a"),
+        ("chest", "Y", "-8 * sway * a"),
+        ("chest", "Z", "12 * sin(2 * pi * u) * a"),
+        Sides(OPPOSED, let={"p": "pos(ph * sin(4 * pi * u))"}, tracks=(
+            ("upper_arm.{s}", "~Y", "-(40 + 90 * p) * a"),
+            ("forearm.{s}", "X", "-(30 + 60 * (1 - p)) * a"),
+            ("thigh.{s}", "X", "-25 * bump(2 * u + 0.25 * (ph + 1)) * a"),
+            ("shin.{s}", "X", "40 * bump(2 * u + 0.25 * (ph + 1)) * a"))),
+        ("neck", "Z", "15 * sway * a"))),
+    # toes out, up on the toes, toes in with the soles rolled in, toes curled
+    "feet_turn": Motion(let={"seg": SEGMENTS}, tracks=(
+        ("thigh.*", "Z", "30 * seg[0] - 15 * seg[2]"),
+        ("foot.*", "Z", "20 * seg[0] - 15 * seg[2]"),
+        ("foot.*", "X", "35 * seg[1]"),
+        ("toes.*", "X", "-35 * seg[1] + 30 * seg[3]"),
+        ("foot.*", "Y", "15 * seg[2] - 12 * seg[3]"),
+        ("thigh.*", "Y", "-8 * seg[3]"))),
+    # fists, fingers spread and bent back, wrists flexed, hands cupped
+    "hand_gestures": Motion(let={"seg": SEGMENTS}, tracks=(
+        ("fingers.*", "X", "30 * seg[0] - 12 * seg[1] + 10 * seg[3]"),
+        ("thumb.*", "X", "25 * seg[0] - 10 * seg[1]"),
+        ("fingers.*", "Y", "15 * seg[3] - 8 * seg[1]"),
+        ("thumb.*", "Y", "20 * seg[3]"),
+        ("hand.*", "X", "40 * seg[2]"),
+        ("hand.*", "Y", "-20 * seg[2] + 10 * seg[1]"),
+        ("forearm.*", "X", "-30 * seg[2]"))),
+    # bend at the hips and knees to pick something up from the floor
+    "pick_up": Motion(let={"a": "bump(u)"}, tracks=(
+        ("spine", "X", "55 * a"),
+        ("chest", "X", "30 * a"),
+        ("neck", "X", "-20 * a"),
+        ("thigh.*", "X", "-45 * a"),
+        ("shin.*", "X", "60 * a"),
+        ("foot.*", "X", "-15 * a"),
+        ("upper_arm.*", "X", "-60 * a"),
+        ("forearm.*", "X", "-15 * a"))),
+}
 
 TRAIN_MOTIONS = ["arms_raise_side", "arms_raise_front", "punch", "jumping_jacks", "squat", "knee_lift",
                  "one_leg_jump", "run_in_place", "torso_twist", "torso_bend", "head_turn", "shake_arms",
@@ -267,3 +260,52 @@ NEW_MOTIONS = ["walk", "run", "sit_down", "crouch", "reach", "jump", "dance", "p
                "hand_gestures"]
 HUMAN_TRAIN_MOTIONS = TRAIN_MOTIONS + NEW_MOTIONS
 HUMAN_TEST_MOTIONS = TEST_MOTIONS
+
+
+# ------------------------------------------------------------------------------ evaluation
+
+#: What the expressions may use besides ``u`` and their motion's names.
+FUNCTIONS = {"__builtins__": {}, "sin": math.sin, "cos": math.cos, "radians": math.radians, "pi": math.pi,
+             "min": min, "max": max, "abs": abs, "range": range, "bump": _bump, "pos": _pos}
+_CODE = {}
+
+
+def _eval(expr, env):
+    code = _CODE.get(expr)
+    if code is None:
+        code = _CODE[expr] = compile(expr, f"<motion expression {expr!r}>", "eval")
+    return eval(code, env)  # noqa: S307  (the expressions are this module's table)
+
+
+def _let(names, env):
+    for name, expr in names.items():
+        env[name] = _eval(expr, env)
+    return env
+
+
+def pose_at(motion, u):
+    """Rotations (armature rest axes, degrees) and root offset of a motion at phase u in [0, 1].
+
+    -> ({bone: [(axis, degrees), ...]}, (dx, dy, dz) metres). Conventions: flexion of a
+    downward bone about -X moves it forward (-Y); abduction of the left arm/leg is about -Y.
+    """
+    spec = MOTIONS[motion]
+    env = _let(spec.let, dict(FUNCTIONS, u=u))
+    r = {}
+    for track in spec.tracks:
+        if isinstance(track, Sides):
+            for s, values in track.values.items():
+                side_env = _let(track.let, _let(values, dict(env)))
+                for bone, axis, expr in track.tracks:
+                    deg = _eval(expr, side_env)
+                    ax, deg = _side(s, AXES[axis[1:]], deg) if axis[0] == "~" else (AXES[axis], deg)
+                    r.setdefault(bone.format(s=s), []).append((ax, deg))
+            continue
+        bone, axis, expr = track
+        deg = _eval(expr, env)
+        if bone.endswith(".*"):
+            for s in "LR":
+                r.setdefault(bone[:-1] + s, []).append(_side(s, AXES[axis], deg))
+        else:
+            r.setdefault(bone, []).append((AXES[axis], deg))
+    return r, tuple(_eval(e, env) for e in spec.root)
