@@ -49,10 +49,9 @@ def _check_codes(fields, *codes):
 #: energy converges in a few tens of iterations; later digits move the path by ~1e-5)
 GEODESIC_FTOL = 1e-10
 #: (window k, rtol r) for a geodesic between two known codes that frames are made from: stop once the
-#: energy fell by less than r of itself over the last k iterations. Measured on 4 pairs of random
-#: ``human`` bodies (10 time points, energies in float32): 21-26 iterations instead of 41-53, every
-#: decoded vertex within 0.20 mm of the float64 path solved to GEODESIC_FTOL (the time discretisation
-#: itself moves them by ~1 mm).
+#: energy fell by less than r of itself over the last k iterations: about half the iterations of a solve
+#: to GEODESIC_FTOL, its frames well within the time discretisation's own error
+#: (docs/decisions/019-geodesics-between-known-codes.md).
 FRAMES_PLATEAU = (5, 1e-5)
 #: ... and once this many times the plateau's window of evaluations in a row did not lower the energy by
 #: its rtol (``optimize.minimize_lbfgs``'s stall: line searches lost in float32 rounding noise)
@@ -64,9 +63,9 @@ DEGENERATE_AREA = 1e-3
 
 def midpoint_metric(template, faces, fields, alpha0, alpha1, weights):
     """G-bar at the mean of two codes (P,), (P,) -> (P, P) float64 numpy (``h2_metric.assembled_metric_matrix``,
-    ~0.2 s on `human`): what ``geodesic`` preconditions with by default. The metric along a path between
-    two bodies is closer to it than to the template's: on 12 pairs of random `human` bodies the geodesic
-    converged in 6-16 L-BFGS iterations instead of 22-31, 10 times closer to the exact path (bench/README).
+    formed face by face): what ``geodesic`` preconditions with by default. The metric along a path between
+    two bodies is closer to it than to the template's, so the geodesic converges in fewer iterations and
+    closer to the exact path (docs/decisions/019-geodesics-between-known-codes.md).
     Where the mean code's surface has a face collapsed below DEGENERATE_AREA of its template area (its
     H2 terms divide by the area) or the matrix is not finite, the template's G-bar instead."""
     mean = torch.as_tensor((np.asarray(alpha0, np.float64) + alpha1) / 2, dtype=template.dtype, device=template.device)
@@ -146,9 +145,9 @@ def step_lengths(template, faces, fields, path, weights):
     return np.sqrt(np.clip(steps.detach().cpu().numpy() / dt, 0, None))
 
 
-#: Linear sub-steps per step when measuring a path's arc length for resampling. Measured on humanoid
-#: geodesics (10 steps, 24 frames): 4 sub-steps move the frames by at most 0.012 mm from 16 sub-steps,
-#: 2 by 0.045 mm, 1 by 0.19 mm, while the cost falls with the number of meshes evaluated (16: ~4 s).
+#: Linear sub-steps per step when measuring a path's arc length for resampling: 4 place the frames as 16
+#: do, to a negligible distance, for a quarter of the meshes evaluated
+#: (docs/decisions/019-geodesics-between-known-codes.md).
 RESAMPLE_REFINE = 4
 
 

@@ -42,15 +42,14 @@ from .threads import with_one_blas_thread
 #: STEP_TOL x the step length in the same norm (rounding noise sits near 1e-11).
 STEP_TOL = 1e-8
 #: A step whose iteration stalls before STEP_TOL is accepted when its remaining correction is below
-#: ACCEPT_TOL x the step length. Measured (bench/shooting_tolerance.py, humanoid random bodies, 8 steps):
-#: every step solved only to 1e-3 moves the frames by up to 0.7 mm (0.04 % of the body), to 1e-4 by
-#: 0.045 mm, below the time-discretisation error itself (0.14 mm between 1 and 2 steps per frame).
+#: ACCEPT_TOL x the step length: the error it leaves is below the time discretisation's own
+#: (``python -m bench.shooting_tolerance``; docs/decisions/013-shooting-tolerance-and-step-refinement.md).
 ACCEPT_TOL = 1e-4
 #: A step that does not converge is halved, down to 1/MAX_SUBSTEPS of a frame ...
 MAX_SUBSTEPS = 64
 #: ... and so is a step whose metric speed differs from the previous step's by more than this share.
-#: A discrete geodesic keeps its speed up to O(h^3): healthy humanoid shots change it by at most
-#: 1.7e-4 per step at one step per frame, 2.6e-5 at two (bench/shooting_tolerance.py).
+#: A discrete geodesic keeps its speed up to O(h^3), so a larger change means a step too long for the
+#: curvature (docs/decisions/013-shooting-tolerance-and-step-refinement.md).
 SPEED_TOL = 0.01
 #: The metric matrix is recomputed when one iteration shrinks the correction by less than this.
 REFRESH_RATIO = 0.3
@@ -346,9 +345,9 @@ def _march(stepper, start, n_frames, substeps, midpoint, monitor, max_substeps, 
     discrete geodesic midpoint of the last two, ``midpoint``) and re-solved from that last good state,
     down to 1/max_substeps of a frame; the finer spacing is kept for the rest of the path. There, a step
     whose equation was solved is kept even when it changes the speed (recorded in ``speed_relaxed``):
-    measured on random human bodies whose pose creases a joint almost flat (a triangle at 0.03 % of its
-    template area), the speed change at 1/64 of a frame is noise of 0.04-1.7 % from step to step, not a
-    step too long; only a step that does not converge there fails.
+    near a joint creased almost flat the speed change at the finest refinement is noise from step to step,
+    not a step too long (docs/decisions/013-shooting-tolerance-and-step-refinement.md);
+    only a step that does not converge there fails.
     """
     history, level, c = list(start), substeps, None
     frames, per_frame, refinements, worst, fastest, relaxed = [], [], 0, 0.0, 0.0, []

@@ -2,11 +2,10 @@ r"""Thread pools during a solve: numpy's and scipy's BLAS held to one thread (``
 
 torch runs a solve's heavy work (varifold sums, path energies) on its own thread pool. numpy and scipy
 bring their own OpenBLAS, each with a pool whose threads spin for a while after every call (scipy's
-L-BFGS-B makes a few per iteration), on the very cores torch's threads then wait for. On 2 cores a
-`human` registration took 46-58 s so and 22-25 s with those pools held to one thread, at the same fit
-(bench/README); the solver's own numpy linear algebra is small (140 x 140 and below), so one thread
-costs it nothing. threadpoolctl sets and restores the limits; torch's pool (its OpenMP runtime, the
-MKL inside it) is not touched.
+L-BFGS-B makes a few per iteration), on the very cores torch's threads then wait for: a registration
+ran about twice as long so (docs/decisions/011-blas-pools-one-thread.md). The solver's own numpy linear
+algebra is small (140 x 140 and below), so one thread costs it nothing. threadpoolctl sets and restores
+the limits; torch's pool (its OpenMP runtime, the MKL inside it) is not touched.
 """
 
 import threading

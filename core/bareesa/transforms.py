@@ -15,8 +15,8 @@ def axis_angle_rotation(w):
 
     On the CPU the exponential of the skew matrix and its derivative are Rodrigues' formula in float64
     numpy (``rodrigues``): the solves' similarity variables build one rotation an evaluation, ~1,000 a
-    registration, and torch's matrix_exp with its backward took ~0.27 ms each (0.28 s a registration;
-    it is also ~1e-12 off at small angles). Elsewhere, and for a second derivative, torch's matrix_exp."""
+    registration, and torch's matrix_exp with its backward is many small autograd ops (and ~1e-12 off at
+    small angles). Elsewhere, and for a second derivative, torch's matrix_exp."""
     if not isinstance(w, torch.Tensor):
         return rodrigues(np.asarray(w, dtype=np.float64))[0]
     if w.device.type == "cpu":

@@ -44,7 +44,7 @@ Backends (same maths, different evaluation strategies, as in geomloss)
 * ``"keops"``: pykeops LazyTensor reduction over all pairs (CPU or CUDA). One formula for the
   three kernels (kappa(t) = c0 + c1 t + c2 t^2 with c and 1/sigma^2 passed as parameters), one
   reduction that returns the value *and* the gradient terms, so a new sigma or kernel never
-  recompiles; a compile (~8 s on CPU, cached in ``pykeops.get_build_folder()``,
+  recompiles; a compile (once per machine, cached in ``pykeops.get_build_folder()``,
   typically ~/.cache/keops2.3/) happens once per dtype x {value, value+gradient} x {dense, ranges}
   (binned measures: also once per feature dimension).
 * ``"truncated"``: ignores the pairs with |x - x'| >= cutoff. The second mesh is sorted into a

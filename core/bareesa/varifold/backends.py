@@ -45,7 +45,8 @@ class FacePairs:
 
     exact_differences = True   # the dense backend forms x_i - y_j (accurate in float32)
     #: KeOps sums the values alone (a fixed target's self term, once a level) with the gradient's formula and
-    #: keeps their column: a formula costs ~5 s of compiling at its first use on a machine
+    #: keeps their column: each formula is a compile at its first use on a machine
+    #: (docs/decisions/004-keops-kernels-at-first-use.md)
     values_formula = False
 
     def __init__(self, kernel):
@@ -103,7 +104,7 @@ class FeaturePairs:
     params = ()
     exact_differences = False  # coarse sigma: the dense backend expands |x - y|^2 (matrix products)
     #: the values alone have their own KeOps formula: the screening scores sum them on fine cells, where the
-    #: gradient's formula costs a third more (0.185 against 0.14 s a score on a `human` scan)
+    #: gradient's formula is dearer (docs/decisions/004-keops-kernels-at-first-use.md)
     values_formula = True
 
     def __init__(self, dim):
@@ -214,7 +215,7 @@ def _built_marker(dtype, device, formulas):
 def build_keops_kernels(dtype=torch.float64, device="cpu", kernels=("binet",), announce=None):
     """Evaluate each of ``keops_formulas(kernels)`` once on a few points of ``dtype`` on ``device``, as the
     losses sum them there (block-sparse on the CPU, "truncated"; whole on a GPU, "keops"), so that KeOps
-    compiles now what it has not built for this environment yet (~5 s each, 3 for binet levels, at their first
+    compiles now what it has not built for this environment yet (3 formulas for binet levels, at their first
     use on a machine) instead of in the middle of a solve; then leaves a marker in KeOps' build folder, and
     later processes find it and do nothing. announce: called first when they are to be evaluated (e.g. to say so on a
     progress bar). Where KeOps cannot build them (no C++ compiler, a broken toolchain) it is turned off for
@@ -269,7 +270,7 @@ def _tile_sums(x, u, y, v, g, kind, grad):
     o = x[:, :1, :]
     x, y = x - o, y - o
     # |x|^2 + |y|^2 - 2 x.y in one product, then the Gaussian in place: each pass over the (T, I, J) tiles
-    # counts (the pre-alignment's and pose stage's coarse sums are ~30 % faster so, to the same digits)
+    # counts (the pre-alignment's and pose stage's coarse sums are made of them; the same digits)
     d2 = torch.baddbmm((x * x).sum(-1)[:, :, None] + (y * y).sum(-1)[:, None, :], x, y.transpose(1, 2), alpha=-2)
     K = d2.clamp_min_(0).mul_(-g).exp_()
 

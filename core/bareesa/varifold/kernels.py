@@ -17,11 +17,9 @@ FEATURE_DIMS = {"binet": 9, "linear": 3, "constant": 1}
 BACKENDS = ("auto", "dense", "keops", "truncated")
 DEFAULT_TOL = 1e-6
 DENSE_MAX_PAIRS = 2e7
-#: ... but with pykeops a cutoff below a quarter of the extent is truncated from this many pairs on: a
-#: `human` middle level (cells 0.6 sigma, 2.5k x 3.1k cells, 1.4 of 8.8 million pairs within the
-#: cutoff) took 36 ms an evaluation truncated against 113 ms dense, its second level (1.3k x 1.4k cells)
-#: 35 against 42 ms; on cells of 0.6 sigma (0.72 million pairs in all) dense was faster there, 11 against
-#: 15 ms (bench/README, 2026-12-06). The torch fallback of the truncated sums is not faster than dense at these sizes.
+#: ... but with pykeops a cutoff below a quarter of the extent is truncated from this many pairs on: below
+#: it dense sums are as fast, above it KeOps' block-sparse sums skip most pairs (see
+#: docs/decisions/002-varifold-backends-and-cells.md). The torch fallback of the truncated sums is no faster than dense.
 TRUNCATE_MIN_PAIRS = 1.5e6
 
 #: Whether pykeops imports (None: not tried yet); set it to False to force the torch code paths.
@@ -34,9 +32,8 @@ NO_KEOPS_ENV = "BAREESA_NO_KEOPS"
 #: the loop over j vectorised: its sums reassociated (-fassociative-math) and exp taken from glibc's
 #: vector math library (libmvec, within 4 ulp), which glibc's headers declare only under __FAST_MATH__.
 #: Not -ffast-math itself: GCC 12 then links crtfastmath into the kernel, which flushes denormals to zero
-#: in the whole process (Blender's too) once it loads, and assumes no NaN. The finest `human` level's
-#: self term took 30-33 against 49-51 ms a call, the sums within 6e-15 (relative) of IEEE's; the binned
-#: levels' feature sums do not vectorise (bench/README, 2026-12-06). KeOps keeps its binaries per host
+#: in the whole process (Blender's too) once it loads, and assumes no NaN. The sums stay within rounding of
+#: IEEE's (see docs/decisions/003-keops-cpu-flags.md). KeOps keeps its binaries per host
 #: name and per flags, so a cluster's nodes each build their own.
 KEOPS_CPU_FLAGS = ("-march=native -fno-math-errno -fno-trapping-math -fno-signed-zeros -fassociative-math "
                    "-D__FAST_MATH__")
