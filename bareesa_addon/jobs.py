@@ -12,7 +12,6 @@ from the modal timer).
 
 import sys
 import threading
-import time
 import traceback
 from dataclasses import dataclass
 from typing import Callable
@@ -89,18 +88,6 @@ class Job:
     def wait(self, timeout=None):
         if self._thread is not None:
             self._thread.join(timeout)
-
-
-def scaled_callback(callback, lo, hi):
-    """A callback reporting sub-task progress into [lo, hi] of the parent's bar."""
-    if callback is None:
-        return None
-    progress = solver.module("progress")
-
-    def inner(event):
-        callback(progress.ProgressEvent(event.task, lo + (hi - lo) * event.fraction, event.message, event.energy))
-
-    return inner
 
 
 def is_user_error(err):
@@ -227,16 +214,3 @@ class SolveOperator:
         self.report({"INFO"}, message)
         return {"FINISHED"}
 
-
-def run_blocking(title, solve, timeout=None):
-    """Run a solve in a thread and wait (for scripts that want the threaded path): -> result."""
-    job = Job(title, solve)
-    job.start()
-    start = time.monotonic()
-    while not job.done:
-        job.wait(0.05)
-        if timeout is not None and time.monotonic() - start > timeout:
-            job.cancel()
-    if job.error is not None:
-        raise job.error
-    return job.result

@@ -161,8 +161,9 @@ def test_background_mode_runs_the_solve_synchronously():
 
 
 def test_scaled_callback_maps_sub_task_progress_into_its_share():
-    from bareesa_addon.jobs import scaled_callback
-    from bareesa.progress import ProgressEvent
+    from bareesa.progress import Monitor, ProgressEvent
+
+    scaled_callback = lambda callback, lo, hi: Monitor("register", callback).scaled(lo, hi)  # noqa: E731
 
     seen = []
     inner = scaled_callback(seen.append, 0.5, 0.75)

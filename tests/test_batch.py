@@ -324,7 +324,7 @@ def test_a_vendored_copy_of_the_solver_registers_scans_in_processes(tiny, scans,
     shutil.copytree(os.path.dirname(bareesa.__file__), ext / "bareesa",
                     ignore=shutil.ignore_patterns("__pycache__", "bases"))
     (ext / "__init__.py").write_text("")
-    with open(ext / "bareesa" / "batch.py", "a") as f:  # a mark only the vendored copy leaves in its results
+    with open(ext / "bareesa" / "batch" / "__init__.py", "a") as f:  # a mark only the vendored copy leaves
         f.write("\n_unmarked = register_array\n\n\ndef register_array(*args, **kwargs):\n"
                 "    return {**_unmarked(*args, **kwargs), 'levels': [{'vendored': True}]}\n")
     script = f"""
