@@ -9,8 +9,7 @@ size), the peak RSS per worker process, and for the capture, sequence mode (warm
 independent registration: seconds, error, frame-to-frame jitter (mean |registered motion - true motion|
 per frame step) and the seam check.
 Run: python -m bench.batch_registration [--scans 40] [--frames 20] [--workers 1,2] [--chunk K]
-(the issue's setting; a human scan takes ~1.5-2.5 min per single-threaded worker here: try --scans 2 --frames 3
-first).
+(the issue's setting; try --scans 2 --frames 3 first).
 """
 
 import argparse
@@ -22,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import markdown_table, report
+from bench.common import markdown_table, report, table, variant_of, write_results
 from bareesa import batch
 from bareesa import basis_io
 from bareesa.basis_io import load_basis, resolve_basis_path
@@ -118,7 +117,7 @@ def main(argv=None):
     lines = [f"basis {basis.name}: {basis.template.shape[0]} vertices, {basis.n_fields} fields; "
              f"{args.scans} held-out scans, {args.frames}-frame capture; files in {root}"]
 
-    rows = []
+    rows, figures, tables = [], {}, []
     if args.scans:
         scans, truths, sizes = held_out_scans(basis, args.scans, root / "scans", args.seed)
         for n in [int(w) for w in args.workers.split(",")]:
@@ -129,9 +128,16 @@ def main(argv=None):
                          60 * len(scans) / rep.seconds, per_scan, float(np.nanmean(err)), float(np.nanmax(err)),
                          max(rss)))
             print(f"{n} worker(s): {rows[-1]}", file=sys.stderr)
+        head = ["workers", "ok", "failed", "seconds", "scans/min", "s/scan (worker)", "mean err/size", "max err/size",
+                "peak RSS/worker MiB"]
         lines += ["", "throughput (LocalCluster, 1 torch thread per worker, cluster start included)", "",
-                  markdown_table(["workers", "ok", "failed", "seconds", "scans/min", "s/scan (worker)",
-                                  "mean err/size", "max err/size", "peak RSS/worker MiB"], rows)]
+                  markdown_table(head, rows)]
+        tables.append(table("Throughput (LocalCluster, 1 torch thread per worker, cluster start included)", head,
+                            rows))
+        for r in rows:
+            figures |= {f"workers{r[0]}_scans_per_min": r[4], f"workers{r[0]}_failed": r[2],
+                        f"workers{r[0]}_mean_error_rel_size": r[6], f"workers{r[0]}_max_error_rel_size": r[7],
+                        f"workers{r[0]}_peak_rss_mb": r[8]}
 
     if args.frames:
         frames, truths, sizes = capture(basis, args.frames, root / "capture", args.seed)
@@ -145,15 +151,26 @@ def main(argv=None):
                              float(np.nanmean(err)), jitter(verts, truths, sizes), max(rss)))
             seams = rep.seams if mode == "sequence" else seams
             print(f"{mode}: {seq_rows[-1]}", file=sys.stderr)
+        head = ["mode", "seconds", "frames/min", "iterations/frame", "mean err/size", "jitter/size",
+                "peak RSS/worker MiB"]
         lines += ["", "4D capture on 2 workers: independent vs sequence mode (warm starts, chunks in parallel)", "",
-                  markdown_table(["mode", "seconds", "frames/min", "iterations/frame", "mean err/size",
-                                  "jitter/size", "peak RSS/worker MiB"], seq_rows)]
+                  markdown_table(head, seq_rows)]
+        tables.append(table("4D capture on 2 workers: independent vs sequence mode", head, seq_rows))
+        for r in seq_rows:
+            figures |= {f"capture_{r[0]}_s": r[1], f"capture_{r[0]}_iterations_per_frame": r[3],
+                        f"capture_{r[0]}_mean_error_rel_size": r[4], f"capture_{r[0]}_jitter_rel_size": r[5]}
         if seams:
+            head = ["before", "after", "jump", "median motion", "ratio", "flagged"]
+            seam_rows = [(s["before"], s["after"], s["jump"], s["median_motion"], s["ratio"], s["flagged"])
+                         for s in seams]
             lines += ["", "seams (vertex jump across a chunk boundary vs the median frame-to-frame motion)", "",
-                      markdown_table(["before", "after", "jump", "median motion", "ratio", "flagged"],
-                                     [(s["before"], s["after"], s["jump"], s["median_motion"], s["ratio"],
-                                       s["flagged"]) for s in seams])]
+                      markdown_table(head, seam_rows)]
+            tables.append(table("Seams (vertex jump across a chunk boundary vs the median frame-to-frame motion)",
+                                head, seam_rows))
+            figures["capture_seams_flagged"] = sum(bool(s["flagged"]) for s in seams)
     report("batch_registration", "\n".join(lines))
+    write_results("batch_registration", figures, tables, variant=variant_of(parser, args, ("keep",)),
+                  argv=sys.argv[1:] if argv is None else argv)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ import time
 import numpy as np
 import torch
 
-from bench.common import markdown_table, report
+from bench.common import markdown_table, report, table, write_results
 from bench.sphere_data import FAMILIES, HELD_OUT, family_sequence, load_frames
 from bareesa import evaluation
 from bareesa.latent import Basis, project_to_basis
@@ -62,12 +62,20 @@ def main():
     head = ["held-out frame", "basis", "P", "vertex err", "Chamfer", "Hausdorff"]
     parts = [f"Reconstruction (L2 projection) error of held-out frames; shape length 12.7 units, face metric, "
              f"elastic geodesics with {ELASTIC_STEPS} time points, {torch.get_num_threads()} torch thread."]
-    for held in (HELD_OUT, WIDE_GAP):
+    figures, tables = {}, []
+    for held, key in ((HELD_OUT, "held60"), (WIDE_GAP, "held60_90")):
         summary, rows = compare(frames, faces, held)
         title = ", ".join(f"{a:+d}" for a in held)
         parts += [f"## Held out: {title}", markdown_table(head + ["build seconds (all P)"], summary),
                   f"### Per frame (held out: {title})", markdown_table(head, rows)]
+        tables += [table(f"Held out: {title}", head + ["build seconds (all P)"], summary),
+                   table(f"Per frame (held out: {title})", head, rows)]
+        for r in summary:
+            if r[2] in (4, max(P_VALUES)):
+                figures[f"{key}_{r[1]}_p{r[2]}_vertex_error_units"] = r[3]
+            figures[f"{key}_{r[1]}_build_s"] = r[-1]
     report("elastic_basis", "# Elastic vs plain-difference basis\n\n" + "\n\n".join(parts))
+    write_results("elastic_basis", figures, tables)
 
 
 if __name__ == "__main__":

@@ -17,15 +17,12 @@ import time
 import numpy as np
 import torch
 
-from bench.common import markdown_table, report
+from bench.common import markdown_table, report, table, variant_of, write_results
 from bareesa import basis_io, registration, synthetic, workflows
 from bareesa.scan_simulator import simulate_scan
 
-#: A residual above FACTOR x the held-out 95th percentile is a poor fit (default of --factor for a card
-#: not calibrated yet; otherwise the card's own factor). On the
-#: human basis 1.35 (bench/README, "A backwards fit just under the threshold"): the right fits stay
-#: under 1.13 x p95 (40 held-out scans of an earlier build, 16 of the current one), and backwards ones
-#: scored from 1.6 x (1.6 was the factor until one scored 1.597 x and went unflagged).
+#: A residual above FACTOR x the held-out 95th percentile is a poor fit: the default of --factor for a
+#: card not calibrated yet (a card keeps its own factor, chosen between its right and wrong fits' scores).
 FACTOR = 3.0
 
 
@@ -69,6 +66,16 @@ def main():
             f" poor fit above {threshold:.4g} ({args.factor:g} x p95); the torus scores {foreign:.4g}"
             f" ({foreign / threshold:.2g} x the threshold)")
     report(f"fit_calibration_{basis.name}", text)
+    write_results("fit_calibration", {
+        "held_out_median_residual": float(np.median(residuals)), "held_out_p95_residual": p95,
+        "held_out_max_residual": float(max(residuals)), "poor_fit_threshold": threshold,
+        "torus_residual": foreign, "torus_over_threshold": foreign / threshold,
+        "registration_mean_wall_s": float(np.mean([r[-1] for r in rows[:-1]]))},
+        [table(f"Fit calibration: basis '{basis.name}', {args.scans} held-out simulated scans",
+               ["scan", "faces", "residual (of size)", "seconds"], rows)],
+        {"torus_over_threshold": {"target": 1.0, "better": "higher"}},
+        variant=variant_of(parser, args, ("write",)),
+        labels={"torus_over_threshold": "a torus' residual over the poor-fit threshold (flagged above 1)"})
     if args.write:
         basis_io.update_card(args.basis, fit_check={
             "residual": "mean distance from the scan to the registered surface / basis size (template frame)",

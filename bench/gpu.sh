@@ -8,7 +8,8 @@
 # bench.registration_speed (float32; with KeOps twice, the first paying its compiles; float64 last),
 # bench.varifold_speed --device cuda and bench.user_speed --device cuda. Each step's log goes to
 # OUTDIR (default bench/out/gpu); no step starts after SECONDS (default 480) from the start, and
-# each has its own time limit.
+# each has its own time limit. The benches' results files (bench/results/*--device-cuda*.json) are
+# copied to OUTDIR too, to be brought back into bench/results where the GPU machine is not the checkout.
 set -u
 out=${1:-bench/out/gpu}
 budget=${2:-480}
@@ -56,4 +57,5 @@ step user_speed_matching 150 "$py" -m bench.user_speed --device cuda --skip regi
     extrapolation random
 step registration_speed_f64 120 "$py" -m bench.registration_speed --device cuda --dtype float64
 cp bench/out/*cuda*.md "$out"/ 2>/dev/null
+cp bench/results/*cuda*.json "$out"/ 2>/dev/null
 echo "== all steps: $(( $(date +%s) - t0 )) s"

@@ -12,8 +12,8 @@ Held-out identities (``bases.build.human.identities()[1]``) performing held-out 
    is no longer bundled), the old mannequin beside it.
 3. Interpolation / extrapolation on held-out motions (the humanoid bench's protocol) of the first
    ``--identities`` held-out identities.
-4. Random bodies: self-intersecting face pairs (non-adjacent faces, Blender's
-   ``BVHTree.overlap``) over ``--bodies`` random bodies; the share with none.
+4. Random bodies: self-intersecting face pairs (non-adjacent faces, ``bareesa.mesh.self_intersections``)
+   over ``--bodies`` random bodies; the share with none.
 5. Ablation (projection error of held-out frames for prefixes of the groups) and a contact
    sheet PNG.
 
@@ -31,8 +31,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.humanoid_accuracy import (_mean_row, _table, ablation_rows, interpolation_rows,  # noqa: E402
-                                     registration_rows, sheet)
+from bench.common import dict_table, variant_of, write_results  # noqa: E402
+from bench.humanoid_accuracy import (_mean_row, _table, ablation_rows, interpolation_figures,  # noqa: E402
+                                     interpolation_rows, registration_rows, sheet)
 
 DFAUST = ROOT.parent / "shared" / "data" / "body" / "DFAUST_template.ply"
 
@@ -98,22 +99,13 @@ def real_body_rows(bases=("human",), n=3, seed=0):
     return rows
 
 
-def self_intersections(verts, faces):
-    """Number of intersecting pairs of faces that share no vertex (Blender's BVHTree.overlap)."""
-    import bpy  # noqa: F401  (puts bpy's mathutils on the path)
-    from mathutils.bvhtree import BVHTree
-
-    tree = BVHTree.FromPolygons(np.asarray(verts).tolist(), np.asarray(faces).tolist(), epsilon=0.0)
-    fs = [set(f) for f in np.asarray(faces).tolist()]
-    return sum(1 for i, j in tree.overlap(tree) if i < j and not fs[i] & fs[j])
-
-
 def random_body_rows(basis, n, seed=0):
+    from bareesa.mesh import self_intersections
     from bareesa.workflows import random_bodies
 
     bodies = random_bodies(basis, n, seed=seed)
     verts = basis.template[None] + np.tensordot(bodies.codes, basis.fields, axes=(1, 0))
-    counts = [self_intersections(v, basis.faces) for v in verts]
+    counts = [len(self_intersections(v, basis.faces)) for v in verts]
     return {"bodies": n, "seed": seed, "with_none": int(sum(c == 0 for c in counts)),
             "share_with_none": round(float(np.mean([c == 0 for c in counts])), 3),
             "median_pairs": float(np.median(counts)), "max_pairs": int(max(counts)), "replaced_draws": int(bodies.replaced),
@@ -141,7 +133,7 @@ def main(argv=None):
     parser.add_argument("--bodies", type=int, default=50, help="random bodies checked for self-intersection")
     parser.add_argument("--identities", type=int, default=4,
                         help="held-out identities whose held-out motions the interpolation part cuts into windows "
-                             "(4: 8 sequences, the humanoid bench's protocol; each costs ~4 min on 2 cores)")
+                             "(4: 8 sequences, the humanoid bench's protocol; each costs minutes)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the random bodies")
     parser.add_argument("--real", type=int, default=3, help="random orientations of the real body per basis")
     parser.add_argument("--old", nargs="*", default=[], metavar="NPZ",
@@ -153,6 +145,7 @@ def main(argv=None):
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--card", action="store_true", help="write the measured accuracy into bases/human.json")
     args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
     import torch
 
     torch.set_num_threads(args.threads)
@@ -167,6 +160,7 @@ def main(argv=None):
     if set(args.skip) >= {"registration", "interpolation", "random", "ablation", "sheet"}:  # the real body only
         results["real_body"] = real_body_rows((args.basis, *args.old), n=args.real)
         (args.out / "human_accuracy_real.json").write_text(json.dumps(results, indent=2) + "\n")
+        write_human_results(results, basis.name, variant_of(parser, args, IGNORED), argv)
         if args.card:
             write_card(args.basis, results)
         return
@@ -208,8 +202,67 @@ def main(argv=None):
         _table(rows, list(rows[0]), "Interpolation / extrapolation in monotone mini-sequences of held-out motions")
         results["interpolation"] = rows
     (args.out / "human_accuracy.json").write_text(json.dumps(results, indent=2) + "\n")
+    write_human_results(results, basis.name, variant_of(parser, args, IGNORED), argv)
     if args.card:
         write_card(args.basis, results)
+
+
+#: arguments that change where output goes or what else is registered beside, not the figures
+IGNORED = ("card", "out", "old")
+def write_human_results(results, basis_name, variant, argv):
+    """bench/results/human_accuracy[--variant].json from the parts measured."""
+    figures, tables = {}, []
+    if "registration" in results:
+        rows, mean = results["registration"]["rows"], results["registration"]["mean"]
+        figures |= {"registration_error_mean_pct_height": mean["mean_%h"],
+                    "registration_error_p95_pct_height": mean["p95_%h"],
+                    "registration_error_mean_mm": mean["mean_mm"], "registration_error_p95_mm": mean["p95_mm"],
+                    "registration_p95_of_p95_pct_height": results["registration"]["p95_of_p95_%h"],
+                    "registration_wall_s": mean["seconds"], "registration_poor_fits": mean.get("poor_fits", 0),
+                    "registration_scans": len(rows)}
+        tables.append(dict_table("Registration of simulated scans of held-out identities in held-out motions", rows))
+    if results.get("real_body"):
+        rows = results["real_body"]
+        own = [r for r in rows if r["basis"] == basis_name] or rows
+        figures |= {"real_body_reg_to_body_mm": max(r["reg->body_mm"] for r in own),
+                    "real_body_body_to_reg_mm": max(r["body->reg_mm"] for r in own),
+                    "real_body_hausdorff_mm": max(r["hausdorff_mm"] for r in own),
+                    "real_body_wall_s": float(np.mean([r["seconds"] for r in own]))}
+        tables.append(dict_table("The DFAUST template (a real body), randomly oriented: surface distances", rows))
+    if "random_bodies" in results:
+        summary = {k: v for k, v in results["random_bodies"].items() if k != "counts"}
+        figures |= {"random_bodies_without_crossings_pct": 100 * summary["share_with_none"],
+                    "random_bodies_replaced_draws": summary["replaced_draws"]}
+        tables.append(dict_table("Random bodies: self-intersecting face pairs", [summary]))
+    if "ablation" in results:
+        rows = results["ablation"]
+        figures["ablation_full_rms_mm"] = list(rows[-1].values())[-1]
+        tables.append(dict_table("Ablation: RMS projection error (mm) of held-out frames, pose rows x shape columns",
+                                 rows))
+    if "interpolation" in results:
+        figures |= interpolation_figures(results["interpolation"])
+        tables.append(dict_table("Interpolation / extrapolation in monotone mini-sequences of held-out motions",
+                                 results["interpolation"]))
+    targets = {"registration_error_mean_pct_height": {"target": 0.5, "better": "lower"},
+               "registration_error_p95_pct_height": {"target": 1.5, "better": "lower"},
+               "real_body_reg_to_body_mm": {"target": 5.0, "better": "lower"},
+               "real_body_body_to_reg_mm": {"target": 5.0, "better": "lower"},
+               "real_body_hausdorff_mm": {"target": 40.0, "better": "lower"},
+               "interpolation_cli_beats_both_measures": {"target": 3, "better": "higher"},
+               "extrapolation_cli_beats_both_measures": {"target": 3, "better": "higher"},
+               "random_bodies_without_crossings_pct": {"target": 95.0, "better": "higher"}}
+    labels = {"registration_error_mean_pct_height": "scans of held-out people: mean vertex error",
+              "registration_error_p95_pct_height": "scans of held-out people: p95 vertex error",
+              "real_body_reg_to_body_mm": "real body: registered -> body (worst orientation)",
+              "real_body_body_to_reg_mm": "real body: body -> registered (worst orientation)",
+              "real_body_hausdorff_mm": "real body: Hausdorff (worst orientation)",
+              "interpolation_cli_beats_both_measures":
+                  "held-out motions, interpolation: measures (of 3) won by the CLI default",
+              "extrapolation_cli_beats_both_measures":
+                  "held-out motions, extrapolation: measures (of 3) won by the CLI default",
+              "random_bodies_without_crossings_pct": "random bodies without self-intersecting faces"}
+    write_results("human_accuracy", figures, tables, {k: v for k, v in targets.items() if k in figures},
+                  variant=variant, labels=labels, argv=argv)
 
 
 def write_card(basis, results):

@@ -9,8 +9,8 @@ blend, at a quarter, half and three quarters of the way; extrapolation from (k, 
 k + 3h (the shooting's failures are counted and left out). End codes are projections of the true
 frames with each candidate's metric (the projection's ridge uses it too).
 
-It chose ``bases.build.human.MOTION_WEIGHTS`` (bench/README.md, 2026-12-05), the shipped basis' metric
-of motion paths; registration and random bodies keep the paper's weights (its ``shape_metric``).
+It chose ``bases.build.human.MOTION_WEIGHTS``, the shipped basis' metric of motion paths; registration
+and random bodies keep the paper's weights (its ``shape_metric``).
 
 Usage: python -m bench.human_metric [--weights A0,A1,B1,C1,D1,A2 ...] [--threads 2]
 """
@@ -83,10 +83,13 @@ def main(argv=None):
     from bareesa.basis_io import load_basis
     from bareesa.h2_metric import H2Weights
 
+    from bench.common import table, variant_of, write_results
+
     seqs = training_motions()
     print("weights                      task           method        hausdorff_mm  chamfer_mm  varifold  n  "
           "shooting failures  seconds")
-    for spec in args.weights:
+    rows, figures = [], {}
+    for c, spec in enumerate(args.weights):
         basis = load_basis("human")
         basis.weights = H2Weights.parse(spec)
         start = time.perf_counter()
@@ -98,6 +101,16 @@ def main(argv=None):
                     m = np.mean(ds, axis=0)
                     print(f"{spec:28s} {task:14s} {name:13s} {1e3 * m[0]:12.1f} {1e3 * m[1]:11.2f} {m[2]:9.3g} "
                           f"{len(ds):2d}  {failures:17d}  {seconds:7.0f}", flush=True)
+                    rows.append([spec, task, name, 1e3 * m[0], 1e3 * m[1], m[2], len(ds), failures, seconds])
+                    if name == "CLI default":  # candidate c's figures; the table names its weights
+                        figures[f"candidate{c + 1}_{task}_chamfer_mm"] = 1e3 * m[1]
+                        figures[f"candidate{c + 1}_{task}_hausdorff_mm"] = 1e3 * m[0]
+        figures[f"candidate{c + 1}_shooting_failures"] = failures
+    write_results("human_metric", figures,
+                  [table("Candidate H2 weights on windows of training motions of held-out identities",
+                         ["weights", "task", "method", "hausdorff_mm", "chamfer_mm", "varifold", "n",
+                          "shooting failures", "seconds"], rows)],
+                  variant=variant_of(parser, args), argv=sys.argv[1:] if argv is None else argv)
 
 
 if __name__ == "__main__":

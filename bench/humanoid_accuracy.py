@@ -241,6 +241,29 @@ def interpolation_rows(basis, seqs, halves=(5, 10), stride=6):
     return rows
 
 
+#: ``METHODS``' name of the CLI's default path (anchored geodesic + the ends' off-basis detail)
+CLI = "H2 anchored + detail"
+
+
+def interpolation_figures(rows):
+    """Headline figures of interpolation / extrapolation rows (their "all" windows): the CLI default's,
+    the latent line's and the vertex blend's Chamfer and Hausdorff, and on how many of the three
+    measures (Hausdorff, Chamfer, varifold) the CLI default beats both."""
+    figures = {}
+    keys = {CLI: "cli", "latent line": "latent_line", "vertex blend": "vertex_blend"}
+    for task in ("interpolation", "extrapolation"):
+        found = {r["method"]: r for r in rows if r["task"] == task and r["half span"] == "all"}
+        for method, key in keys.items():
+            if method in found:
+                figures[f"{task}_{key}_chamfer_mm"] = found[method]["chamfer_mm"]
+                figures[f"{task}_{key}_hausdorff_mm"] = found[method]["hausdorff_mm"]
+        if all(m in found for m in keys):
+            figures[f"{task}_cli_beats_both_measures"] = sum(
+                all(found[CLI][k] < found[m][k] for m in ("latent line", "vertex blend"))
+                for k in ("hausdorff_mm", "chamfer_mm", "varifold"))
+    return figures
+
+
 # ---------------------------------------------------------------------------- ablation
 
 
@@ -336,10 +359,13 @@ def main(argv=None):
     parser.add_argument("--card", action="store_true",
                         help="write the measured accuracy into the basis' card (the .json beside the .npz)")
     args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
     if args.basis is None:
         parser.error("the humanoid mannequin is no longer bundled: build it with python -m bases.build humanoid "
                      "-o DIR and give --basis DIR/humanoid.npz")
     import torch
+
+    from bench.common import variant_of
 
     torch.set_num_threads(args.threads)
     from bareesa.basis_io import load_basis
@@ -388,8 +414,37 @@ def main(argv=None):
             results["registration_full_precision"] = {"rows": full, "mean": full_mean,
                                                       "max_abs_diff_mean_mm": max(diff)}
     (args.out / "humanoid_accuracy.json").write_text(json.dumps(results, indent=2) + "\n")
+    write_humanoid_results(results, variant_of(parser, args, ("basis", "card", "out", "full")), argv)
     if args.card:
         write_card_accuracy(args.basis, results)
+
+
+def write_humanoid_results(results, variant, argv):
+    """bench/results/humanoid_accuracy[--variant].json from the parts measured."""
+    from bench.common import dict_table, write_results
+
+    figures, tables = {}, []
+    if "registration" in results:
+        mean = results["registration"]["mean"]
+        figures |= {"registration_error_mean_pct_height": mean["mean_%h"],
+                    "registration_error_p95_pct_height": mean["p95_%h"],
+                    "registration_error_mean_mm": mean["mean_mm"], "registration_error_p95_mm": mean["p95_mm"],
+                    "registration_wall_s": mean["seconds"], "registration_poor_fits": mean.get("poor_fits", 0)}
+        tables.append(dict_table("Registration of simulated scans of held-out body types in held-out motions",
+                                 results["registration"]["rows"]))
+    if "registration_full_precision" in results:
+        full = results["registration_full_precision"]
+        figures["float64_fields_max_abs_diff_mean_mm"] = full["max_abs_diff_mean_mm"]
+        tables.append(dict_table("The same scans registered with float64 fields", full["rows"]))
+    if "ablation" in results:
+        figures["ablation_full_rms_mm"] = list(results["ablation"][-1].values())[-1]
+        tables.append(dict_table("Ablation: RMS projection error (mm) of held-out frames, pose rows x shape columns",
+                                 results["ablation"]))
+    if "interpolation" in results:
+        figures |= interpolation_figures(results["interpolation"])
+        tables.append(dict_table("Interpolation / extrapolation in monotone mini-sequences of held-out motions",
+                                 results["interpolation"]))
+    write_results("humanoid_accuracy", figures, tables, variant=variant, argv=argv)
 
 
 def write_card_accuracy(name, results, measured_by="python -m bench.humanoid_accuracy --card"):

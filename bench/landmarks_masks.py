@@ -15,13 +15,14 @@ Usage: python -m bench.landmarks_masks [--parts sphere arm floor] [--scans N] [-
 """
 
 import argparse
+import sys
 import time
 
 import numpy as np
 import torch
 
 import bench.common  # noqa: F401  (puts the repo on sys.path)
-from bench.common import OUT, markdown_table, report
+from bench.common import OUT, markdown_table, report, table, variant_of, write_results
 from bareesa import evaluation
 from bareesa.basis_io import load_basis
 from bareesa.errors import BareEsaError
@@ -40,6 +41,12 @@ def placed(points, noise, rng):
 
 
 MESHES = OUT / "landmarks_masks"
+#: each part's cases: (name, column of its mean vertex error in the part's rows)
+CASES = {"sphere": (("free", 1), ("landmarks", 4)), "arm": (("free", 2), ("landmarks", 5)),
+         "floor": (("clean", 3), ("masked", 6), ("unmasked", 9))}
+TITLES = {"sphere": "sphere: held-out frames without and with 3 landmarks (errors in % of the length)",
+          "arm": f"arm: held-out human scans with an arm raised, without and with {len(ARM_LANDMARKS)} landmarks",
+          "floor": "floor: random bodies on a floor plate with a wall behind, clean, masked and unmasked"}
 
 
 def keep(name, verts, faces, weights=None):
@@ -93,8 +100,7 @@ def sphere_rows():
                     np.save(MESHES / "sphere_transform.npy", res.transform.matrix())  # the last: with landmarks
             rows.append(row)
             print("  ", *(f"{x:.3g}" if isinstance(x, float) else x for x in row), flush=True)
-    return markdown_table(["held-out frame", "no landmarks: mean %L", "p95 %L", "s",
-                           "3 landmarks: mean %L", "p95 %L", "s"], rows)
+    return ["held-out frame", "no landmarks: mean %L", "p95 %L", "s", "3 landmarks: mean %L", "p95 %L", "s"], rows
 
 
 def held_out_frames(path, n, motion="wave"):
@@ -138,8 +144,8 @@ def arm_rows(basis, n, truths):
                 np.save(MESHES / "arm_transform.npy", res.transform.matrix())
         rows.append(row)
         print("  ", *(f"{x:.3g}" if isinstance(x, float) else x for x in row), flush=True)
-    return markdown_table(["held-out scan", "faces", "no landmarks: mean mm", "p95 mm", "s",
-                           f"{len(ARM_LANDMARKS)} landmarks: mean mm", "p95 mm", "s"], rows)
+    return ["held-out scan", "faces", "no landmarks: mean mm", "p95 mm", "s",
+            f"{len(ARM_LANDMARKS)} landmarks: mean mm", "p95 mm", "s"], rows
 
 
 def plate(corner, u, v, pitch):
@@ -191,8 +197,8 @@ def floor_rows(basis, n):
             keep("floor_scan", cluttered_v, cluttered_f, mask)
         rows.append(row)
         print("  ", *(f"{x:.3g}" if isinstance(x, float) else x for x in row), flush=True)
-    return markdown_table(["random body", "body faces", "floor+wall faces", "clean: mean mm", "p95 mm", "s",
-                           "masked: mean mm", "p95 mm", "s", "no mask: mean mm", "p95 mm", "s"], rows)
+    return ["random body", "body faces", "floor+wall faces", "clean: mean mm", "p95 mm", "s",
+            "masked: mean mm", "p95 mm", "s", "no mask: mean mm", "p95 mm", "s"], rows
 
 
 def main(argv=None):
@@ -204,15 +210,23 @@ def main(argv=None):
                         help="cache of the held-out Anny frames (written on the first run)")
     args = parser.parse_args(argv)
     torch.set_num_threads(2)
-    sections = []
+    sections, tables, figures = [], [], {}
     human = load_basis("human") if {"arm", "floor"} & set(args.parts) else None
     for part in args.parts:
         print(f"{part}:", flush=True)
-        table = {"sphere": sphere_rows, "arm": lambda: arm_rows(human, args.scans, args.truths),
-                 "floor": lambda: floor_rows(human, args.scans)}[part]()
-        sections.append(f"### {part}\n\n{table}")
+        header, rows = {"sphere": sphere_rows, "arm": lambda: arm_rows(human, args.scans, args.truths),
+                        "floor": lambda: floor_rows(human, args.scans)}[part]()
+        sections.append(f"### {part}\n\n{markdown_table(header, rows)}")
         report("landmarks_masks", "\n\n".join(sections))
+        tables.append(table(TITLES[part], header, rows))
+        for case, column in CASES[part]:  # mean over the part's scans of each case's mean vertex error
+            values = np.array([r[column] for r in rows], dtype=float)
+            figures[f"{part}_{case}_error_mean_{'pct_length' if part == 'sphere' else 'mm'}"] = (
+                float(np.nanmean(values)) if np.isfinite(values).any() else float("nan"))
+            figures[f"{part}_{case}_failures"] = int(np.isnan(values).sum())
     print("\n\n".join(sections))
+    write_results("landmarks_masks", figures, tables, variant=variant_of(parser, args, ("truths",)),
+                  argv=sys.argv[1:] if argv is None else argv)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Mesh invariance of the varifold distance (the paper's appendix figure).
 
-    python bench/mesh_invariance.py     # writes bench/out/mesh_invariance.{md,png}
+    python -m bench.mesh_invariance     # writes bench/out/mesh_invariance.{md,png}, bench/results/mesh_invariance.json
 
 face-reference.ply (57,836 faces) normalised to diameter 1 versus its quadric decimation to
 2,000 faces; relative error d_Var(q, q') / ||q'||_Var for log-spaced sigma (binet kernel).
@@ -9,7 +9,6 @@ Needs trimesh's quadric decimation, i.e. the optional ``fast-simplification`` pa
 otherwise). Data: ../shared/data (override with BAREESA_SHARED).
 """
 
-import os
 import sys
 import time
 from pathlib import Path
@@ -21,17 +20,9 @@ import trimesh
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from bareesa import varifold as V  # noqa: E402
+from bench.common import shared_data, table, write_results  # noqa: E402
 
 SIGMAS = np.geomspace(0.005, 0.5, 13)
-
-
-def shared_data():
-    base = Path(os.environ.get("BAREESA_SHARED", Path(__file__).resolve().parents[2] / "shared"))
-    data = base / "data" if (base / "data").is_dir() else base
-    if not (data / "faces" / "face-reference.ply").is_file():
-        sys.exit(f"mesh_invariance: shared data not found under {data} "
-                 "(expected faces/face-reference.ply); set BAREESA_SHARED")
-    return data
 
 
 def diameter(v):
@@ -47,7 +38,7 @@ def mean_triangle_diameter(v, f):
 
 
 def main():
-    data = shared_data()
+    data = shared_data("mesh_invariance", "faces/face-reference.ply")
     m = trimesh.load(data / "faces" / "face-reference.ply", process=False)
     v = np.asarray(m.vertices, np.float64)
     v = (v - v.mean(0)) / diameter(v)
@@ -66,7 +57,7 @@ def main():
              f"{mean_triangle_diameter(vl, fl):.2e}. Binet kernel, float64.", "",
              "| sigma | d_Var(q, q') / ‖q'‖_Var | backend | seconds |", "|---|---|---|---|"]
     print("\n".join(lines), flush=True)
-    rel = []
+    rel, rows = [], []
     with torch.no_grad():
         ql = V.varifold_measure(t(vl), t(fl))
         for sigma in SIGMAS:
@@ -75,12 +66,17 @@ def main():
             d2 = loss(t(vf), t(ff))
             norm2 = V.varifold_inner(*ql, *ql, sigma, backend="dense")
             rel.append(float(d2.clamp_min(0)) ** 0.5 / float(norm2) ** 0.5)
-            lines.append(f"| {sigma:.4f} | {rel[-1]:.2e} | {loss.stats['backend']} | "
-                         f"{time.perf_counter() - start:.1f} |")
+            rows.append([float(sigma), rel[-1], loss.stats["backend"], time.perf_counter() - start])
+            lines.append(f"| {sigma:.4f} | {rel[-1]:.2e} | {loss.stats['backend']} | {rows[-1][-1]:.1f} |")
             print(lines[-1], flush=True)
     out = ROOT / "bench" / "out"
     out.mkdir(parents=True, exist_ok=True)
     (out / "mesh_invariance.md").write_text("\n".join(lines) + "\n")
+    figures = {"full_faces": len(ff), "decimated_faces": len(fl), "rel_error_min": min(rel), "rel_error_max": max(rel)}
+    figures |= {f"rel_error_sigma_{s:.3g}": r for s, r in zip(SIGMAS[::3], rel[::3])}
+    write_results("mesh_invariance", figures,
+                  [table(f"d_Var(q, q') / ||q'||_Var, {len(ff)} vs {len(fl)} faces, diameter 1",
+                         ["sigma", "relative error", "backend", "seconds"], rows)])
     try:
         import matplotlib
         matplotlib.use("Agg")

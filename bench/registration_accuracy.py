@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 import bench.common  # noqa: F401  (puts the repo on sys.path)
-from bench.common import OUT, markdown_table, report
+from bench.common import OUT, markdown_table, report, table, variant_of, write_results
 from bareesa import evaluation
 from bareesa.basis_io import load_basis
 from bareesa.registration import problem, register
@@ -61,7 +61,7 @@ PAPER_FACTORS = [
     ("default now (noisy scan: linear at the finest level, scan cells sigma/3.3)", {}),
     ("default now, float32", {"dtype": "float32"}),
 ]
-#: the rows of the human and real-body parts (each registration is minutes on this CPU)
+#: the rows of the human and real-body parts (fewer: each registration there is slow)
 BODY_FACTORS = [
     ("before: binet, scan cells sigma/2", BEFORE),
     ("default now", {}),
@@ -120,8 +120,8 @@ def paper_rows(log=print):
                      "/".join(str(lv["iterations"]) for lv in res.levels)])
         log("  ", *(f"{x:.3g}" if isinstance(x, float) else x for x in rows[-1]), flush=True)
     return (f"Scan normal spread {problem.normal_spread(sv, sf):.3f}.\n\n"
-            + markdown_table(["paper-scale instance", "finest kernel", "mean mm", "p95 mm", "wall s", "CPU s",
-                              "iterations"], rows))
+            + recorded("paper", ["paper-scale instance", "finest kernel", "mean mm", "p95 mm", "wall s", "CPU s",
+                                 "iterations"], rows))
 
 
 def human_rows(n, truths, log=print):
@@ -141,8 +141,8 @@ def human_rows(n, truths, log=print):
                 rows.append([key, f"{1e3 * noise:g} mm", f"{res.normal_spread:.3f}", name, res.levels[-1]["kernel"],
                              unit * err["mean"], unit * err["p95"], wall, cpu])
                 log("  ", *(f"{x:.3g}" if isinstance(x, float) else x for x in rows[-1]), flush=True)
-    return markdown_table(["held-out scan", "noise", "normal spread", "registration", "finest kernel", "mean mm",
-                           "p95 mm", "wall s", "CPU s"], rows)
+    return recorded("human", ["held-out scan", "noise", "normal spread", "registration", "finest kernel", "mean mm",
+                              "p95 mm", "wall s", "CPU s"], rows)
 
 
 def real_rows(n, log=print):
@@ -169,8 +169,47 @@ def real_rows(n, log=print):
             rows.append([f"orientation {k + 1}", name, res.levels[-1]["kernel"], 1e3 * d_rb, 1e3 * d_br, 1e3 * haus,
                          wall, cpu])
             log("  ", *(f"{x:.3g}" if isinstance(x, float) else x for x in rows[-1]), flush=True)
-    return markdown_table(["DFAUST template", "registration", "finest kernel", "registered->body mm",
-                           "body->registered mm", "Hausdorff mm", "wall s", "CPU s"], rows)
+    return recorded("real", ["DFAUST template", "registration", "finest kernel", "registered->body mm",
+                             "body->registered mm", "Hausdorff mm", "wall s", "CPU s"], rows)
+
+
+#: each part's table of this run, {part: (header, rows)}, for the results file
+TABLES = {}
+
+
+def recorded(part, header, rows):
+    """Keep a part's table for the results file: -> its markdown."""
+    TABLES[part] = (header, rows)
+    return markdown_table(header, rows)
+
+
+def row_key(name):
+    """'default' / 'before' for the rows the figures report (the shipped default, the state before), else None."""
+    if name == "default now" or name.startswith("default now ("):
+        return "default"
+    return "before" if name.startswith("before") else None
+
+
+def figures_of(tables):
+    """Headline figures of the parts' tables: the default's and the before-state's errors and seconds."""
+    figures = {}
+    for name, kernel, mean, p95, wall, *_ in tables.get("paper", (None, []))[1]:
+        if row_key(name):
+            figures |= {f"paper_{row_key(name)}_error_mean_mm": mean, f"paper_{row_key(name)}_error_p95_mm": p95,
+                        f"paper_{row_key(name)}_wall_s": wall}
+    groups = {}
+    for _, noise, _, name, _, mean, p95, wall, _ in tables.get("human", (None, []))[1]:
+        if row_key(name):
+            groups.setdefault(f"human_noise{noise.replace(' ', '')}_{row_key(name)}", []).append((mean, p95, wall))
+    for _, name, _, rb, br, haus, wall, _ in tables.get("real", (None, []))[1]:
+        if row_key(name):
+            groups.setdefault(f"real_{row_key(name)}", []).append((rb, br, haus, wall))
+    for key, values in groups.items():
+        m = np.mean(values, axis=0)
+        names = (("error_mean_mm", "error_p95_mm", "wall_s") if key.startswith("human")
+                 else ("reg_to_body_mm", "body_to_reg_mm", "hausdorff_mm", "wall_s"))
+        figures |= {f"{key}_{n}": float(v) for n, v in zip(names, m)}
+    return figures
 
 
 def main(argv=None):
@@ -193,6 +232,9 @@ def main(argv=None):
         print(f"## {title}", flush=True)
         text.append(f"## {title}\n\n{rows()}")
     report(args.name, "\n\n".join(text))
+    write_results("registration_accuracy", figures_of(TABLES),
+                  [table(sections[part][0], *TABLES[part]) for part in args.parts if part in TABLES],
+                  variant=variant_of(parser, args, ("truths",)), argv=argv)
 
 
 if __name__ == "__main__":

@@ -18,7 +18,8 @@ import time
 import numpy as np
 import torch
 
-from bench.common import markdown_table, report
+from bench.common import markdown_table, report, variant_of, write_results
+from bench.common import table as results_table
 from bareesa import basis_io, shooting, statistics
 from bareesa.geodesics import decode_path
 
@@ -81,15 +82,27 @@ def main():
               float(np.max(d)) / size if d else float("nan")] for tol, d in rows_tol.items()]
     table += [[f"{k} substeps per frame (time discretisation)", len(d), float(np.max(d)) if d else float("nan"),
                float(np.max(d)) / size if d else float("nan")] for k, d in rows_time.items()]
+    head1 = ["shots", "n", f"max deviation ({unit})", "relative to size"]
+    head2 = ["steps per frame", "n", "median", "max"]
+    speeds = [[k, len(s), float(np.median(s)) if s else float("nan"), float(np.max(s)) if s else float("nan")]
+              for k, s in speed.items()]
     text = (f"# Shooting tolerance: basis '{basis.name}', {args.seeds} random bodies, {args.steps} steps\n\n"
             f"Largest vertex deviation from the reference (every step solved to 1e-9, 1 step per frame):\n\n"
-            + markdown_table(["shots", "n", f"max deviation ({unit})", "relative to size"], table, "{:.3g}")
+            + markdown_table(head1, table, "{:.3g}")
             + "\n\nLargest change of metric speed between consecutive steps (accepted shots):\n\n"
-            + markdown_table(["steps per frame", "n", "median", "max"],
-                             [[k, len(s), float(np.median(s)) if s else float("nan"),
-                               float(np.max(s)) if s else float("nan")] for k, s in speed.items()], "{:.3g}")
+            + markdown_table(head2, speeds, "{:.3g}")
             + ("\n\nFailures:\n" + "\n".join(f"- {x}" for x in failed) if failed else "\n\nNo failures."))
     report("shooting_tolerance", text)
+    figures = {f"max_deviation_tol_{tol:g}_rel_size": row[3] for tol, row in zip(TOLERANCES, table)}
+    figures |= {f"max_deviation_{k}_substeps_rel_size": row[3] for k, row in zip((2, 4), table[len(TOLERANCES):])}
+    figures |= {f"max_speed_change_{row[0]}_steps_per_frame": row[3] for row in speeds}
+    figures["failures"] = len(failed)
+    write_results("shooting_tolerance", figures,
+                  [results_table("Largest vertex deviation from the reference (every step solved to 1e-9)", head1,
+                                 table),
+                   results_table("Largest change of metric speed between consecutive steps", head2, speeds)]
+                  + ([results_table("Failures", ["failure"], [[x] for x in failed])] if failed else []),
+                  variant=variant_of(parser, args))
 
 
 if __name__ == "__main__":

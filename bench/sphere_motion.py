@@ -16,7 +16,7 @@ import time
 import numpy as np
 import torch
 
-from bench.common import OUT, contact_sheet, markdown_table, report
+from bench.common import OUT, contact_sheet, markdown_table, report, table, write_results
 from bench.sphere_data import FAMILIES, family_sequence, load_frames
 from bareesa import evaluation
 from bareesa.geodesics import decode_path
@@ -84,7 +84,8 @@ def main():
     targets = {r[0] for r in rows}
     summary += [[f"mean over all {len(targets)} targets", m, *np.mean([r[2:] for r in rows if r[1] == m], axis=0)]
                 for m in METHODS if all(r[2] != "failed" for r in rows if r[1] == m)]
-    part1 = markdown_table(["target", "method", "vertex err", "Chamfer", "Hausdorff", "varifold"], rows + summary)
+    head1 = ["target", "method", "vertex err", "Chamfer", "Hausdorff", "varifold"]
+    part1 = markdown_table(head1, rows + summary)
     if failures:
         part1 += "\n\nFailed shooting steps:\n" + "\n".join(f"- {x}" for x in failures)
 
@@ -115,12 +116,22 @@ def main():
     t0, cpu0 = time.perf_counter(), time.process_time()
     extrapolate(bt, bf, bh, c0, c1, body.weights, 10)
     secs, cpu = time.perf_counter() - t0, time.process_time() - cpu0
-    part3 = markdown_table(["problem", "torch threads", "wall seconds (target <= 10 s)", "CPU seconds"],
-                           [[f"10 extrapolation steps, {bt.shape[0]} vertices, P = {body.n_fields}",
-                             torch.get_num_threads(), secs, cpu]])
+    head3 = ["problem", "torch threads", "wall seconds (target <= 10 s)", "CPU seconds"]
+    rows3 = [[f"10 extrapolation steps, {bt.shape[0]} vertices, P = {body.n_fields}", torch.get_num_threads(), secs,
+              cpu]]
+    part3 = markdown_table(head3, rows3)
     report("sphere_motion", "## Extrapolation from (30, 60) to 90 and 120\n\n" + part1
            + "\n\n## Speed\n\n" + part3
            + f"\n\nPNGs: {OUT / 'sphere_motion_transfer.png'}, {OUT / 'sphere_motion_random.png'}")
+    slug = lambda m: m.replace(",", "").replace(" ", "_").lower()  # noqa: E731
+    figures = {f"extrapolation_{slug(r[1])}_error_units": r[2] for r in summary if r[0].endswith("all methods reached")}
+    figures |= {"extrapolation_shooting_failures": len(failures), "paper_scale_10_steps_wall_s": secs,
+                "paper_scale_10_steps_cpu_s": cpu}
+    write_results("sphere_motion", figures,
+                  [table("Extrapolation from (30, 60) to 90 and 120 (shape units)", head1, rows + summary),
+                   table("Speed", head3, rows3)],
+                  {"paper_scale_10_steps_wall_s": {"target": 10.0, "better": "lower"}},
+                  labels={"paper_scale_10_steps_wall_s": "10 extrapolation steps at the paper's scale"})
 
 
 if __name__ == "__main__":

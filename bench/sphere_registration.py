@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 import bench.common  # noqa: F401  (puts the repo on sys.path)
-from bench.common import OUT, contact_sheet, markdown_table, report
+from bench.common import OUT, contact_sheet, markdown_table, report, table, write_results
 from bench.sphere_data import FAMILIES, HELD_OUT, load_frames, sphere_basis
 from bareesa import evaluation
 from bareesa.geodesics import decode_path, geodesic, resample_path
@@ -56,9 +56,9 @@ def main():
                          evaluation.hausdorff(res.vertices, sv) / scale / length * 100, res.varifold, secs])
             print("  ", *(f"{x:.4g}" if isinstance(x, float) else x for x in rows[-1]), flush=True)
     mean = ["mean", "", *np.mean([r[2:] for r in rows], axis=0)]
-    part1 = markdown_table(["held-out frame", "scan faces", "vertex err mean %L", "vertex err p95 %L",
-                            "Chamfer %L", "Hausdorff %L", "varifold (template frame)", "seconds"],
-                           rows + [mean])
+    head1 = ["held-out frame", "scan faces", "vertex err mean %L", "vertex err p95 %L", "Chamfer %L", "Hausdorff %L",
+             "varifold (template frame)", "seconds"]
+    part1 = markdown_table(head1, rows + [mean])
 
     t, f, h = basis.tensors()
     rows2, sheet, titles = [], [], []
@@ -80,13 +80,20 @@ def main():
     for name in ("H2 geodesic", "latent line", "vertex blend"):
         vals = np.array([r[2:] for r in rows2 if r[1] == name])
         summary.append(["mean", name, *vals.mean(0)])
-    part2 = markdown_table(["interpolation", "method", "vertex err mean", "vertex err p95", "Chamfer",
-                            "Hausdorff", "varifold"], rows2 + summary)
+    head2 = ["interpolation", "method", "vertex err mean", "vertex err p95", "Chamfer", "Hausdorff", "varifold"]
+    part2 = markdown_table(head2, rows2 + summary)
     contact_sheet(OUT / "sphere_registration.png", sheet, titles, elev=10, azim=-30)
     report("sphere_registration",
            "## Registration of simulated scans of held-out frames (errors in % of the shape length L)\n\n"
            + part1 + "\n\n## Interpolation midpoints against the true 60 frame\n\n" + part2
            + f"\n\nPNG: {OUT / 'sphere_registration.png'}")
+    figures = {"registration_error_mean_pct_length": mean[2], "registration_error_p95_pct_length": mean[3],
+               "registration_wall_s": mean[-1]}
+    figures |= {f"interpolation_{r[1].replace(' ', '_').lower()}_error_mean_units": r[2] for r in summary}
+    write_results("sphere_registration", figures,
+                  [table("Registration of simulated scans of held-out frames (errors in % of the shape length L)",
+                         head1, rows + [mean]),
+                   table("Interpolation midpoints against the true 60 frame (shape units)", head2, rows2 + summary)])
 
 
 if __name__ == "__main__":

@@ -2,7 +2,7 @@
 the add-on call it, every stage on (pre-alignment, pose candidates, refinement).
 
 Rows: first use (a small scan registered first: KeOps builds its kernels at their first use on a
-machine, ~15 s, timed apart so that the rows after it time the solves alone); registration of a ~50k-face
+machine, timed apart so that the rows after it time the solves alone); registration of a ~50k-face
 simulated scan (remeshed, noisy, holed, arbitrary rotation and scale) against its true vertices;
 interpolation between two known codes at T = 24 frames; symmetric matching of two raw scans;
 extrapolation of 10 frames; 20 random bodies. Each with wall
@@ -20,7 +20,7 @@ import time
 import numpy as np
 import torch
 
-from bench.common import markdown_table, report
+from bench.common import markdown_table, report, table, variant_of, write_results
 from bareesa import basis_io, evaluation, workflows
 from bareesa.errors import BareEsaError
 from bareesa.scan_simulator import apply_similarity, simulate_scan
@@ -42,72 +42,101 @@ def scan_of(basis, code, seed, resolution):
     return workflows.Scan(verts, faces), apply_similarity(info, truth)
 
 
-def error_text(basis, got, truth, scale):
-    """Mean vertex error in the basis' units and as a share of its size."""
+def error_text(basis, got, truth, scale, figures=None, key=None):
+    """Mean vertex error in the basis' units and as a share of its size (also into ``figures`` as
+    <key>_error_mm, or _error_units for a basis not in metres, and <key>_error_pct_size)."""
     err = evaluation.vertex_error(got, truth)["mean"] / scale
     size = float(np.ptp(basis.template, axis=0).max())
+    if figures is not None:
+        figures[f"{key}_error_{'mm' if basis.units == 'm' else 'units'}"] = err * 1000 if basis.units == "m" else err
+        figures[f"{key}_error_pct_size"] = 100 * err / size
     value = f"{err * 1000:.1f} mm" if basis.units == "m" else f"{err:.3g} {basis.units or 'units'}"
     return f"vertex error mean {value} ({100 * err / size:.2f} % of size)"
 
 
-def timed_row(task, fn, outcome):
+def timed_row(task, fn, outcome, figures=None, key=None):
     """A table row [task, wall, CPU, outcome(result)], or the one-line error of a failed solve as its
-    outcome (a failure is a result: the table goes on)."""
+    outcome (a failure is a result: the table goes on); its seconds into ``figures`` as <key>_wall_s and
+    <key>_cpu_s (<key>_failed = 1 instead for a failure)."""
     t0, c0 = time.perf_counter(), time.process_time()
+    failed = False
     try:
         text = outcome(fn())
     except BareEsaError as err:
-        text = f"**failed**: {err}"
+        text, failed = f"**failed**: {err}", True
     row = [task, time.perf_counter() - t0, time.process_time() - c0, text]
+    if figures is not None:
+        figures.update({f"{key}_failed": 1} if failed else {f"{key}_wall_s": row[1], f"{key}_cpu_s": row[2]})
     print("  ", *row, flush=True)
     return row
 
 
-#: The first-use row registers a scan this coarse (~5k faces on the human): KeOps builds its kernels at
-#: their first use on a machine (or in a new environment), ~15 s (~20 s before the faces' values came from
-#: the gradient's formula), and a small scan needs the same ones as the registrations after it (measured
-#: with an empty KeOps cache: 28.2 s for the small scan, then 8.8 s for the 60,928-face scan, 9.3 s for it
-#: again; bench/README)
+#: The first-use row registers a scan this coarse (~5k faces on the human): it needs the same KeOps
+#: kernels as the registrations after it, so they are built (once per machine) before those are timed.
 FIRST_USE_RESOLUTION = 0.03
 
 
-def user_rows(basis, options, skip, resolution, first_use=True):
+def user_rows(basis, options, skip, resolution, first_use=True, figures=None):
     """The table of what a user runs on ``basis``: rows [task, wall, CPU, outcome]; with first_use the first
-    registers a small scan, so that the rows after it do not time KeOps building its kernels."""
+    registers a small scan, so that the rows after it do not time KeOps building its kernels. ``figures``
+    (a dict) receives each row's seconds and outcome as numbers."""
+    figures = {} if figures is None else figures
     codes = workflows.random_bodies(basis, 2, 7, options).codes
     rows = []
+
+    def registered(reg):
+        figures["registration_residual"] = reg.residual
+        return "; ".join([error_text(basis, reg.vertices, truth, 1.0, figures, "registration"),
+                          f"residual {reg.residual:.3g}"])
+
+    def interpolated(found):
+        figures["interpolation_distance"] = found.distance
+        return f"distance {found.distance:.4g}"
+
+    def extrapolated(rep):
+        figures["extrapolation_refinements"] = rep.refinements
+        return f"{rep.refinements} refinements (steps per frame up to {max(rep.substeps)})"
+
+    def drawn(bodies):
+        figures["random_bodies_replaced"] = bodies.replaced
+        return f"{bodies.replaced} draws replaced"
+
     if first_use:
         small, truth = scan_of(basis, codes[1], 99, FIRST_USE_RESOLUTION)
+        figures["first_use_scan_faces"] = len(small.faces)
         rows.append(timed_row(f"first use: registration of a {len(small.faces)}-face scan (KeOps builds its "
                               "kernels if this machine has not yet)",
                               lambda: workflows.code_of(basis, small, options).registration,
-                              lambda reg: error_text(basis, reg.vertices, truth, 1.0)))
+                              lambda reg: error_text(basis, reg.vertices, truth, 1.0, figures, "first_use"),
+                              figures, "first_use"))
     if "registration" not in skip:
         scan, truth = scan_of(basis, codes[0], 11, resolution)
+        figures["registration_scan_faces"] = len(scan.faces)
         rows.append(timed_row(f"registration, {len(scan.faces)}-face scan",
-                              lambda: workflows.code_of(basis, scan, options).registration,
-                              lambda reg: "; ".join([error_text(basis, reg.vertices, truth, 1.0),
-                                                     f"residual {reg.residual:.3g}"])))
+                              lambda: workflows.code_of(basis, scan, options).registration, registered,
+                              figures, "registration"))
     if "interpolation" not in skip:
         ends = [workflows.KnownCode(c) for c in codes]
         rows.append(timed_row("interpolation, known codes, T = 24",
-                              lambda: workflows.path_between(basis, *ends, 24, options),
-                              lambda found: f"distance {found.distance:.4g}"))
+                              lambda: workflows.path_between(basis, *ends, 24, options), interpolated,
+                              figures, "interpolation"))
     if "matching" not in skip:
         (scan_a, truth_a), (scan_b, truth_b) = scan_of(basis, codes[0], 12, resolution), \
             scan_of(basis, codes[1], 13, resolution)
         rows.append(timed_row("symmetric matching of two raw scans",
                               lambda: workflows.geodesic_between(basis, scan_a, scan_b, options),
-                              lambda found: "; ".join(error_text(basis, e.registration.vertices, t, 1.0)
-                                                      for e, t in zip(found.ends, (truth_a, truth_b)))))
+                              lambda found: "; ".join(error_text(basis, e.registration.vertices, t, 1.0, figures,
+                                                                 f"matching_end{i + 1}")
+                                                      for i, (e, t) in enumerate(zip(found.ends, (truth_a, truth_b)))),
+                              figures, "matching"))
     if "extrapolation" not in skip:
         a, b = workflows.KnownCode(codes[0]), workflows.KnownCode(codes[0] + 0.1 * (codes[1] - codes[0]))
         rows.append(timed_row("extrapolation, 10 frames",
-                              lambda: workflows.extrapolate(basis, a, b, 10, options).shooting,
-                              lambda rep: f"{rep.refinements} refinements (steps per frame up to {max(rep.substeps)})"))
+                              lambda: workflows.extrapolate(basis, a, b, 10, options).shooting, extrapolated,
+                              figures, "extrapolation"))
     if "random" not in skip:
-        rows.append(timed_row("20 random bodies", lambda: workflows.random_bodies(basis, 20, 3, options),
-                              lambda bodies: f"{bodies.replaced} draws replaced"))
+        rows.append(timed_row("20 random bodies", lambda: workflows.random_bodies(basis, 20, 3, options), drawn,
+                              figures, "random_bodies"))
     return rows
 
 
@@ -164,20 +193,43 @@ def main():
     options = workflows.Options(device=args.device)
     basis = basis_io.load_basis(args.basis)
     header = ["task", "wall s", "CPU s", "accuracy / outcome"]
-    text = (f"# What a user runs: basis '{basis.name}', device {args.device}, torch threads {args.threads}\n\n"
-            + markdown_table(header, user_rows(basis, options, set(args.skip), args.resolution,
-                                               first_use=bool({"registration", "matching"} - set(args.skip))
-                                               or bool(args.bodies) or args.paper), "{:.1f}"))
+    figures = {}
+    rows = user_rows(basis, options, set(args.skip), args.resolution,
+                     first_use=bool({"registration", "matching"} - set(args.skip)) or bool(args.bodies) or args.paper,
+                     figures=figures)
+    title = f"What a user runs: basis '{basis.name}', device {args.device}, torch threads {args.threads}"
+    text = f"# {title}\n\n" + markdown_table(header, rows, "{:.1f}")
+    tables = [table(title, header, rows)]
     if args.bodies:
         unit = "mm" if basis.units == "m" else basis.units or "units"
-        text += (f"\n\n## Random bodies, one simulated scan each\n\n"
-                 + markdown_table(["seed", "scan faces", f"mean {unit}", f"p95 {unit}", "wall s", "CPU s",
-                                   "iterations per level"], body_rows(basis, options, args.bodies, args.resolution),
-                                  "{:.2f}"))
+        found = body_rows(basis, options, args.bodies, args.resolution)
+        body_header = ["seed", "scan faces", f"mean {unit}", f"p95 {unit}", "wall s", "CPU s", "iterations per level"]
+        text += ("\n\n## Random bodies, one simulated scan each\n\n" + markdown_table(body_header, found, "{:.2f}"))
+        tables.append(table("Random bodies, one simulated scan each", body_header, found))
+        suffix = "mm" if basis.units == "m" else "units"
+        figures |= {f"bodies_error_mean_{suffix}": float(np.mean([r[2] for r in found])),
+                    f"bodies_error_p95_{suffix}": float(np.mean([r[3] for r in found])),
+                    "bodies_wall_mean_s": float(np.mean([r[4] for r in found]))}
     if args.paper:
-        text += "\n\n## Paper scale\n\n" + markdown_table(header, paper_rows(options, args.resolution), "{:.1f}")
+        found = paper_rows(options, args.resolution)
+        text += "\n\n## Paper scale\n\n" + markdown_table(header, found, "{:.1f}")
+        tables.append(table("Paper scale", header, found))
+        figures |= {"paper_registration_wall_s": found[0][1], "paper_interpolation_wall_s": found[1][1]}
     report(f"user_speed_{basis.name}_{args.device}", text)
-
+    faces = figures.get("registration_scan_faces")
+    labels = {"registration_wall_s": f"registration of a {faces:,}-face simulated scan" if faces else "registration",
+              "registration_error_mm": "its mean vertex error", "registration_error_units": "its mean vertex error",
+              "interpolation_wall_s": "interpolation between known codes, T = 24",
+              "matching_wall_s": "symmetric matching of two raw scans",
+              "extrapolation_wall_s": "extrapolation, 10 frames", "random_bodies_wall_s": "20 random bodies"}
+    on_gpu = args.device != "cpu"
+    targets = {"registration_wall_s": {"target": 1.0 if on_gpu else 10.0, "better": "lower"},
+               "interpolation_wall_s": {"target": 3.0, "better": "lower"},
+               "matching_wall_s": {"target": 25.0, "better": "lower"}}
+    headline = ["registration_wall_s", "registration_error_mm", "registration_error_units", "interpolation_wall_s",
+                "matching_wall_s", "extrapolation_wall_s", "random_bodies_wall_s"]
+    write_results("user_speed", figures, tables, targets, variant=variant_of(parser, args), labels=labels,
+                  headline=[k for k in headline if k in figures])
 
 if __name__ == "__main__":
     main()

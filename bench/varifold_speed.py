@@ -1,8 +1,8 @@
 """Speed, accuracy and memory of the varifold backends at the paper's scale.
 
-    python bench/varifold_speed.py                 # CPU backends (and CUDA ones if a GPU is seen)
-    python bench/varifold_speed.py --device cuda   # the GPU backends only
-    # both write bench/out/varifold_speed[_cuda].md
+    python -m bench.varifold_speed                 # CPU backends (and CUDA ones if a GPU is seen)
+    python -m bench.varifold_speed --device cuda   # the GPU backends only
+    # both write bench/out/varifold_speed[_cuda].md and bench/results/varifold_speed[--device-cuda].json
 
 Source: the DFAUST body template (13,776 faces) scaled to 1.7 m. Targets of ~55k faces:
 (a) face-reference.ply rescaled to the body's size (as in the issue), (b) a "scan" of the body
@@ -13,7 +13,6 @@ source vertices. Data: ../shared/data (override with BAREESA_SHARED=/path/to/sha
 
 import argparse
 import json
-import os
 import resource
 import statistics
 import subprocess
@@ -26,21 +25,13 @@ import torch
 import trimesh
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT))  # run as `python bench/varifold_speed.py` too (the memory child is)
 from bareesa import varifold as V  # noqa: E402
+from bench.common import shared_data, table, variant_of, write_results  # noqa: E402
 
 SIGMA = 0.025
 DTYPE = torch.float64
-
-
-def shared_data():
-    base = Path(os.environ.get("BAREESA_SHARED", Path(__file__).resolve().parents[2] / "shared"))
-    data = base / "data" if (base / "data").is_dir() else base
-    if not (data / "body" / "DFAUST_template.ply").is_file():
-        sys.exit(f"varifold_speed: shared data not found under {data} "
-                 "(expected body/DFAUST_template.ply and faces/face-reference.ply); "
-                 "set BAREESA_SHARED to the folder holding data/")
-    return data
+DATA = ("varifold_speed", "body/DFAUST_template.ply", "faces/face-reference.ply")  # shared_data's arguments
 
 
 def load(path):
@@ -129,7 +120,7 @@ def run_case(name, vs, fs, vt, ft, dev, backends, rows):
         def one_shot():
             return value_grad(lambda v: V.varifold_distance(v, T, tv, tf, SIGMA, backend=backend), S)
 
-        # dense KeOps one-shot is ~1 min per call on 2 cores: one warm call only
+        # dense KeOps one-shot is the slowest call by far: one warm call only
         first1, warm1, cpu1, _ = timed(one_shot, dev, warm=1 if backend == "keops" else 3)
         loss = V.VarifoldLoss(tv, tf, SIGMA, backend=backend)
         first2, warm2, cpu2, (val, grad) = timed(lambda: value_grad(lambda v: loss(v, T), S), dev)
@@ -166,7 +157,7 @@ def memory_child(which, data_dir):
 
 def main():
     if len(sys.argv) == 3 and sys.argv[1] == "--memory-child":
-        return memory_child(sys.argv[2], shared_data())
+        return memory_child(sys.argv[2], shared_data(*DATA))
     parser = argparse.ArgumentParser(description="Speed of the varifold backends at the paper's scale.")
     parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"),
                         help="cpu: the CPU backends, the CPU memory table, and the CUDA backends when a GPU "
@@ -174,7 +165,7 @@ def main():
     args = parser.parse_args()
     if args.device == "cuda" and not torch.cuda.is_available():
         sys.exit("varifold_speed: --device cuda, but torch sees no CUDA device")
-    data = shared_data()
+    data = shared_data(*DATA)
     torch.manual_seed(0)
     vs, fs = body(data)
     targets = {"(a) face-reference rescaled": face_target(data, vs),
@@ -214,7 +205,7 @@ def main():
           f"cutoff = {V.default_cutoff(SIGMA):.4f} (tol 1e-6), float64, value + gradient w.r.t. "
           f"the source vertices, {torch.get_num_threads()} CPU threads"
           + (f", GPU {torch.cuda.get_device_name()}" if torch.cuda.is_available() else "") + ". Times in seconds: first call "
-          "(includes any KeOps compile) / median of 3 warm calls (1 for the dense-KeOps one-shot), wall-clock and CPU seconds (process_time over all threads; robust to other jobs sharing the 2 cores, which happened during this run). 'one-shot' = varifold_distance "
+          "(includes any KeOps compile) / median of 3 warm calls (1 for the dense-KeOps one-shot), wall-clock and CPU seconds (process_time over all threads; robust to other jobs sharing the cores). 'one-shot' = varifold_distance "
           "(recomputes the target self term); 'loss' = VarifoldLoss call (target self term cached). "
           "Speed-up and errors are relative to dense KeOps on the same device.", "",
           "| target | device | backend | one-shot first | one-shot warm (wall / CPU) | loss first "
@@ -251,6 +242,38 @@ def main():
     out = ROOT / "bench" / "out"
     out.mkdir(parents=True, exist_ok=True)
     (out / ("varifold_speed.md" if args.device == "cpu" else "varifold_speed_cuda.md")).write_text(text)
+    write_results("varifold_speed", *results_of(rows, mem), variant=variant_of(parser, args))
+
+
+def slug(text):
+    """'truncated (keops ranges)' -> 'truncated_keops_ranges'."""
+    return "_".join("".join(c if c.isalnum() else " " for c in text.lower()).split())
+
+
+def results_of(rows, mem):
+    """(figures, tables) of the backend rows and the memory children."""
+    figures, table_rows = {}, []
+    for r in rows:
+        key = f"{'face' if r['case'].startswith('(a)') else 'scan'}_{r['device']}_{slug(r['backend'])}"
+        figures |= {f"{key}_oneshot_s": r["oneshot_s"], f"{key}_loss_s": r["loss_s"]}
+        if "rel_err_grad" in r and r["rel_err_grad"] > 0:
+            figures[f"{key}_rel_err_grad"] = r["rel_err_grad"]
+        table_rows.append([r["case"], r["device"], r["backend"], r.get("first_oneshot_s"), r["oneshot_s"],
+                           r.get("oneshot_cpu_s"), r.get("first_loss_s"), r["loss_s"], r.get("loss_cpu_s"),
+                           r["speedup_loss"], r.get("rel_err_value"), r.get("rel_err_grad"),
+                           r.get("pairs_per_call")])
+    tables = [table("Varifold value + gradient, speed-up and errors relative to dense KeOps on the same device",
+                    ["target", "device", "backend", "one-shot first s", "one-shot warm s", "one-shot CPU s",
+                     "loss first s", "loss warm s", "loss CPU s", "speed-up (loss, wall)", "rel. err. d^2",
+                     "rel. err. grad", "pairs per loss call"], table_rows)]
+    good = [(which, m) for which, m in mem if "error" not in m]
+    for which, m in good:
+        figures |= {f"memory_truncated_{which}_peak_mb": m["peak_mb"], f"memory_truncated_{which}_s": m["seconds"]}
+    if good:
+        tables.append(table("Peak memory of the truncated backend against a 220k-face scan (a fresh process)",
+                            ["truncated via", "target faces", "peak RSS MB", "RSS before MB", "build + call s"],
+                            [[w, m["faces"], m["peak_mb"], m["before_mb"], m["seconds"]] for w, m in good]))
+    return figures, tables
 
 
 if __name__ == "__main__":
