@@ -89,6 +89,9 @@ class BAREESA_PT_register(_Section, bpy.types.Panel):
         col = layout.column()
         col.prop(s, "schedule")
         col.prop(s, "prealign")
+        col.prop(s, "pose_search")
+        col.prop(s, "retry_poor_fits")
+        col.prop(s, "registration_settings")
         obj = context.active_object
         if obj is not None and obj.type == "MESH":
             col.prop_search(s, "mask_group", obj, "vertex_groups")

@@ -83,6 +83,16 @@ class BareEsaSettings(bpy.types.PropertyGroup):
     prealign: BoolProperty(name="Pre-align", default=True,
                            description="Find the scan's rotation, position and scale first (off: the scan is "
                                        "already in the template's frame)")
+    pose_search: BoolProperty(name="Pose Search", default=True,
+                              description="Try the basis' typical poses as starts (how a raised arm or a bent "
+                                          "leg is found); off: only the pose the coarse levels reach")
+    retry_poor_fits: BoolProperty(name="Retry Poor Fits", default=True,
+                                  description="Register a fit far from the scan again from other alignments "
+                                              "(most often a body registered facing backwards)")
+    registration_settings: StringProperty(name="Settings", default="",
+                                          description="Further registration settings, KEY=VALUE separated by ';' "
+                                                      "(e.g. poses.finalists=3; solve.memory=50): the names "
+                                                      "'bareesa register --show-config' prints")
     mask_group: StringProperty(name="Ignore Group", default="bareesa_ignore",
                                description="Vertex group of a scan whose weights say what to ignore (1: ignore, "
                                            "e.g. a floor, a wall, supports, hair); scans without it are used whole")

@@ -9,8 +9,8 @@ Three kinds of input, each registered with the shipped default and with one fact
    run): vertex error.
 3. ``real``: the DFAUST template (a real body) in random orientations, registered with ``human``:
    mean surface distance both ways and Hausdorff (needs ``bpy``).
-The factors are module constants of ``bareesa.registration.problem`` and ``register``'s options; a
-row says what it changes from the default. Wall and CPU seconds beside (2-core CPU: compare rows of
+The factors are ``RegistrationConfig`` settings (each row builds a variant of the basis' configuration);
+a row says what it changes from the default. Wall and CPU seconds beside (2-core CPU: compare rows of
 one run only).
 
 Usage: python -m bench.registration_accuracy [--parts paper human real] [--scans N] [--real N]
@@ -18,7 +18,6 @@ Usage: python -m bench.registration_accuracy [--parts paper human real] [--scans
 """
 
 import argparse
-import contextlib
 import time
 from dataclasses import replace
 
@@ -29,35 +28,33 @@ import bench.common  # noqa: F401  (puts the repo on sys.path)
 from bench.common import OUT, markdown_table, report, table, variant_of, write_results
 from bareesa import evaluation
 from bareesa.basis_io import load_basis
-from bareesa.registration import problem, register
+from bareesa.registration import RegistrationConfig, register
+from bareesa.registration.problem import normal_spread
 from bareesa.scan_simulator import apply_similarity, simulate_scan
 
 #: The shipped state before this bench chose the default: binet on every level, the scan summed
 #: over cells of sigma / 2 at the finest level (whatever the kernel), its normals as they are.
-BEFORE = {"kernel": "binet", "SCAN_CELL": 0.5, "ORIENTED_SCAN_CELL": 0.5}
+BEFORE = {"kernel": "binet", "solve.scan_cell": 0.5, "solve.oriented_scan_cell": 0.5}
 LINEAR_FINEST = ("binet", "binet", "linear")
 
-#: (name, changes) for the paper-scale instance; changes are register() options, problem constants
-#: (upper case), "iters" (each level's max_iter), "finest_weight" (x the finest level's weight),
-#: "half_sigma_level" (a fourth level at half the finest sigma) and "dtype".
+#: (name, changes) for the paper-scale instance; changes are ``RegistrationConfig`` settings (dotted keys
+#: for nested ones), "iters" (each level's max_iter), "finest_weight" (x the finest level's weight) and
+#: "half_sigma_level" (a fourth level at half the finest sigma).
 PAPER_FACTORS = [
     ("before: binet, scan cells sigma/2", BEFORE),
-    ("binet, scan cells sigma/4", {**BEFORE, "SCAN_CELL": 0.25}),
-    ("binet, scan not binned, truncation 1e-6", {**BEFORE, "SCAN_CELL": None, "FINE_TOL": 1e-6}),
-    ("binet, no plateau stop, caps 100/100/200", {**BEFORE, "LEVEL_PLATEAU": None, "iters": (100, 100, 200)}),
+    ("binet, scan cells sigma/4", {**BEFORE, "solve.scan_cell": 0.25}),
+    ("binet, scan not binned, truncation 1e-6", {**BEFORE, "solve.scan_cell": None, "solve.fine_tol": 1e-6}),
+    ("binet, no plateau stop, caps 100/100/200", {**BEFORE, "solve.plateau": 0.0, "iters": (100, 100, 200)}),
     ("binet, finest weight x10", {**BEFORE, "finest_weight": 10.0}),
     ("binet, a fourth level at sigma/2", {**BEFORE, "half_sigma_level": True}),
     ("binet, float32", {**BEFORE, "dtype": "float32"}),
-    ("binet, scan normals denoised over sigma", {**BEFORE, "SCAN_NORMAL_RADIUS": 1.0}),
-    ("binet, scan normals denoised over 2 sigma", {**BEFORE, "SCAN_NORMAL_RADIUS": 2.0}),
     ("linear on every level", {**BEFORE, "kernel": "linear"}),
     ("binet, linear at the finest level", {**BEFORE, "kernel": LINEAR_FINEST}),
     ("binet, linear at the finest level, scan cells sigma/4",
-     {**BEFORE, "kernel": LINEAR_FINEST, "ORIENTED_SCAN_CELL": 0.25}),
+     {**BEFORE, "kernel": LINEAR_FINEST, "solve.oriented_scan_cell": 0.25}),
     ("binet, linear at the finest level, scan not binned",
-     {**BEFORE, "kernel": LINEAR_FINEST, "ORIENTED_SCAN_CELL": None}),
-    ("binet, binet+linear at the finest level, normals denoised",
-     {**BEFORE, "kernel": ("binet", "binet", "binet+linear"), "SCAN_NORMAL_RADIUS": 1.0}),
+     {**BEFORE, "kernel": LINEAR_FINEST, "solve.oriented_scan_cell": None}),
+    ("binet, binet+linear at the finest level", {**BEFORE, "kernel": ("binet", "binet", "binet+linear")}),
     ("default now (noisy scan: linear at the finest level, scan cells sigma/3.3)", {}),
     ("default now, float32", {"dtype": "float32"}),
 ]
@@ -73,20 +70,6 @@ HUMAN_NOISE = (0.001, 0.004)
 HUMAN_SCAN = dict(remesh="voxel", holes=3, scale=0.1)
 
 
-@contextlib.contextmanager
-def constants(changes):
-    """Set the upper-case entries of ``changes`` on ``bareesa.registration.problem`` for a while."""
-    names = [k for k in changes if k.isupper()]
-    saved = {k: getattr(problem, k) for k in names}
-    try:
-        for k in names:
-            setattr(problem, k, changes[k])
-        yield
-    finally:
-        for k, v in saved.items():
-            setattr(problem, k, v)
-
-
 def run(basis, verts, faces, changes):
     """register() with ``changes`` -> (result, wall s, CPU s)."""
     schedule = list(basis.schedule)
@@ -96,13 +79,13 @@ def run(basis, verts, faces, changes):
         schedule[-1] = replace(schedule[-1], weight=schedule[-1].weight * changes["finest_weight"])
     if changes.get("half_sigma_level"):
         schedule.append(replace(schedule[-1], sigma=schedule[-1].sigma / 2, max_iter=40))
-    options = {"kernel": changes.get("kernel", "auto"), "dtype": getattr(torch, changes.get("dtype", "float64"))}
+    settings = {k: v for k, v in changes.items() if k not in ("iters", "finest_weight", "half_sigma_level")}
     if "kernel" in changes and not isinstance(changes["kernel"], str) and len(schedule) != 3:
         raise SystemExit("a per-level kernel row needs a three-level schedule")
-    with constants(changes):
-        t0, c0 = time.perf_counter(), time.process_time()
-        res = register(basis, verts, faces, schedule=schedule, **options)
-        return res, time.perf_counter() - t0, time.process_time() - c0
+    config = RegistrationConfig.from_basis(basis, settings, schedule=schedule)  # a variant, no global patched
+    t0, c0 = time.perf_counter(), time.process_time()
+    res = register(basis, verts, faces, config)
+    return res, time.perf_counter() - t0, time.process_time() - c0
 
 
 def paper_rows(log=print):
@@ -119,7 +102,7 @@ def paper_rows(log=print):
         rows.append([name, res.levels[-1]["kernel"], 1e3 * err["mean"], 1e3 * err["p95"], wall, cpu,
                      "/".join(str(lv["iterations"]) for lv in res.levels)])
         log("  ", *(f"{x:.3g}" if isinstance(x, float) else x for x in rows[-1]), flush=True)
-    return (f"Scan normal spread {problem.normal_spread(sv, sf):.3f}.\n\n"
+    return (f"Scan normal spread {normal_spread(sv, sf):.3f}.\n\n"
             + recorded("paper", ["paper-scale instance", "finest kernel", "mean mm", "p95 mm", "wall s", "CPU s",
                                  "iterations"], rows))
 

@@ -347,7 +347,7 @@ import distributed
 
 res = vb.register_scans({str(tiny[0])!r}, [Scan(*load_mesh({str(scans[0])!r}))],
                         Options(schedule=(Level(0.25, 1e3, 1, 5),)), workers=1)
-assert type(res[0]).__module__ == "my_extension.bareesa.registration.multiscale", type(res[0])
+assert type(res[0]).__module__ == "my_extension.bareesa.registration.result", type(res[0])
 assert res[0].levels == [{{"vendored": True}}], "the workers ran the installed solver, not the vendored one"
 print("code", np.round(res[0].code, 6).tolist())
 """

@@ -256,8 +256,8 @@ def test_shape_weights_are_saved_and_registration_and_random_bodies_use_them(tmp
     class Seen(Exception):
         pass
 
-    def fake_problem(basis, sv, sf, face_w, marks, landmark_weight, metric, *rest):
-        raise Seen(metric)
+    def fake_problem(basis, sv, sf, config, *rest):
+        raise Seen(config.shape_metric(basis))
 
     def fake_shoot(template, faces, fields, alpha0, velocity, weights, *args, **kwargs):
         raise Seen(weights)

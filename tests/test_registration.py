@@ -9,8 +9,9 @@ import pytest
 import torch
 
 from bareesa import registration, synthetic
-from bareesa.registration import poses
+from bareesa.registration import checks, poses, prepared
 from bareesa.registration import problem as level_problem
+from bareesa.registration.config import LevelSolve, PoseSearch, RegistrationConfig
 from bareesa.transforms import Similarity, axis_angle_rotation
 from bareesa.errors import InputError, MeshError, SolveCancelled
 from bareesa.h2_metric import H2Weights
@@ -250,10 +251,9 @@ def test_fine_level_scan_binning_keeps_the_code(space, monkeypatch):
 
     monkeypatch.setattr(level_problem, "VarifoldLoss", spy)
     binned = registration.register(basis, scan, faces, prealign=False, backend="dense")
-    assert level_problem.SCAN_CELL is not None and max(seen) < 0.5 * faces.shape[0]
-    monkeypatch.setattr(level_problem, "SCAN_CELL", None)
+    assert LevelSolve().scan_cell is not None and max(seen) < 0.5 * faces.shape[0]
     seen.clear()
-    exact = registration.register(basis, scan, faces, prealign=False, backend="dense")
+    exact = registration.register(basis, scan, faces, prealign=False, backend="dense", **{"solve.scan_cell": None})
     assert seen and set(seen) == {faces.shape[0]}
     scale = np.linalg.norm(space["alpha"])
     assert np.linalg.norm(binned.code - exact.code) < 0.02 * scale
@@ -263,15 +263,11 @@ def test_fine_level_scan_binning_keeps_the_code(space, monkeypatch):
 def test_screen_score_tracks_the_exact_objective_and_ranks_alignments_like_it(space):
     # candidate alignments are ranked by screen_score: at the second level's sigma, on fine cells,
     # it must agree with the unbinned objective weight * Gamma + E (the level's coarse binning does not)
-    from bareesa.h2_metric import H2Weights
-    from bareesa.progress import Monitor
     from bareesa.varifold import varifold_distance
 
     basis = space["basis"]
     level = basis.schedule[min(1, len(basis.schedule) - 1)]
-    problem = level_problem.RegistrationProblem(basis, space["scan"], space["faces"], None, None, 1.0,
-                                    H2Weights.parse(basis.weights), "dense", "auto", True,
-                                    torch.float64, "cpu", Monitor("test"))
+    problem = _problem(space)
     exact, scores = [], []
     for degrees in (0.0, 10.0, 30.0, 180.0):
         r = axis_angle_rotation(np.radians(degrees) * np.array([0.0, 0.6, 0.8]))
@@ -286,14 +282,13 @@ def test_screen_score_tracks_the_exact_objective_and_ranks_alignments_like_it(sp
     assert np.argsort(scores).tolist() == np.argsort(exact).tolist() and np.argmin(scores) == 0
 
 
-def _problem(space):
-    from bareesa.h2_metric import H2Weights
-    from bareesa.progress import Monitor
-
+def _problem(space, **overrides):
+    """The level problem of the space's scan (dense sums, the similarity refined, the basis' path metric),
+    its settings changed by ``overrides`` (dotted keys)."""
     basis = space["basis"]
-    return level_problem.RegistrationProblem(basis, space["scan"], space["faces"], None, None, 1.0,
-                                 H2Weights.parse(basis.weights), "dense", "auto", True, torch.float64,
-                                 "cpu", Monitor("test"))
+    config = RegistrationConfig(metric=basis.weights, backend="dense", refine_transform=True)
+    return level_problem.RegistrationProblem(basis, space["scan"], space["faces"], config.with_overrides(overrides),
+                                             Monitor("test"))
 
 
 def test_a_level_reports_the_energy_and_varifold_of_the_point_it_returns(space):
@@ -338,20 +333,18 @@ def test_realign_moves_a_shifted_rescaled_scan_back_onto_the_surface(space):
 
 
 def test_straight_energies_in_batches_are_each_straight_paths_energy(space, monkeypatch):
-    """``straight_energies`` sums STRAIGHT_BATCH paths a call (here 4, over 11 codes): each energy is the
+    """``straight_energies`` sums ``solve.straight_batch`` paths a call (here 4, over 11 codes): each energy is the
     path energy of its own straight path 0 -> code, and a code's energy does not depend on its batch."""
     from bareesa import h2_metric
     from bareesa.latent import decode
 
-    P = level_problem
-    monkeypatch.setattr(P, "STRAIGHT_BATCH", 4)
-    problem, level = _problem(space), space["basis"].schedule[1]
+    problem, level = _problem(space, **{"solve.straight_batch": 4}), space["basis"].schedule[1]
     codes = space["alpha"] * np.random.default_rng(8).uniform(0.2, 1.5, size=(11, 1))
     got = problem.straight_energies(level, codes)
     ramp = torch.linspace(0, 1, level.steps + 1, dtype=torch.float64)[:, None]
     for code, energy in zip(codes, got):
         path = decode(problem.template, problem.fields, ramp * torch.as_tensor(code))
-        alone = float(h2_metric.path_energy(path, problem.faces, problem.metric, compute_dtype=P.ENERGY_DTYPE))
+        alone = float(h2_metric.path_energy(path, problem.faces, problem.metric, compute_dtype=LevelSolve().energy_dtype))
         assert energy == pytest.approx(alone, rel=1e-12)
     assert problem.straight_energies(level, codes[5:7]) == pytest.approx(got[5:7], rel=1e-12)
     assert len(set(got)) == 11
@@ -379,9 +372,8 @@ def test_realign_scores_all_codes_against_one_scan_loss_as_one_by_one(space, mon
 
 
 def test_pose_short_solves_run_on_a_one_step_path_and_coarser_cells(space, monkeypatch):
-    monkeypatch.setattr(poses, "POSE_ITER", 2)
     basis, alpha = space["basis"], space["alpha"]
-    problem = _problem(space)
+    problem = _problem(space, **{"poses.iterations": 2})
     solved = []
     solve = problem.solve_level
 
@@ -392,17 +384,15 @@ def test_pose_short_solves_run_on_a_one_step_path_and_coarser_cells(space, monke
     problem.solve_level = spy
     poses.try_poses(problem, basis, basis.schedule[1], basis.schedule[-1], np.zeros((2, 6)), Similarity(),
                     alpha[None] + 0.05, (0.0, 1.0), "test")
-    assert solved and set(solved) == {(poses.POSE_STEPS, 2, poses.POSE_BIN_CELL)}
-    assert poses.POSE_STEPS < basis.schedule[1].steps and poses.POSE_BIN_CELL > level_problem.BIN_CELL
+    assert solved and set(solved) == {(PoseSearch().steps, 2, PoseSearch().bin_cell)}
+    assert PoseSearch().steps < basis.schedule[1].steps and PoseSearch().bin_cell > LevelSolve().bin_cell
 
 
 def test_pose_candidates_are_ranked_after_a_few_iterations_and_only_the_best_goes_on(space, monkeypatch):
-    monkeypatch.setattr(poses, "POSE_ITER", 5)
-    monkeypatch.setattr(poses, "POSE_PICK_ITER", 2)
     basis, alpha = space["basis"], space["alpha"]
     rng = np.random.default_rng(4)
     candidates = np.concatenate([rng.normal(size=(4, 6)), [alpha + 0.05 * rng.normal(size=6)]])
-    problem = _problem(space)
+    problem = _problem(space, **{"poses.iterations": 5, "poses.pick_iterations": 2})
     solved, solve = [], problem.solve_level
 
     def spy(level, path, *args, **kwargs):
@@ -424,11 +414,10 @@ def test_pose_candidates_are_ranked_after_a_few_iterations_and_only_the_best_goe
 def test_pose_stage_starts_the_level_from_the_candidate_that_fits(space, monkeypatch):
     # short solves of 2 iterations barely move: the stage must hand on the candidate near alpha*,
     # not the template it was given or the far candidates
-    monkeypatch.setattr(poses, "POSE_ITER", 2)
     basis, alpha = space["basis"], space["alpha"]
     rng = np.random.default_rng(4)
     candidates = np.concatenate([rng.normal(size=(4, 6)), [alpha + 0.05 * rng.normal(size=6)]])
-    path, transform, share = poses.try_poses(_problem(space), basis, basis.schedule[1], basis.schedule[-1],
+    path, transform, share = poses.try_poses(_problem(space, **{"poses.iterations": 2}), basis, basis.schedule[1], basis.schedule[-1],
                                                      np.zeros((2, 6)), Similarity(), candidates,
                                                      (0.0, 1.0), "test")
     assert 0 < share < 1
@@ -439,12 +428,10 @@ def test_pose_stage_starts_the_level_from_the_candidate_that_fits(space, monkeyp
 def test_pose_stage_realigns_only_the_best_centroid_matched_candidates_and_still_finds_the_fit(space, monkeypatch):
     # 10 far candidates and one near alpha*: the cheap score (centroid matched, no iterations) must keep
     # the near one among the POSE_REALIGN that get the full re-alignment
-    monkeypatch.setattr(poses, "POSE_ITER", 2)
-    monkeypatch.setattr(poses, "POSE_REALIGN", 2)
     basis, alpha = space["basis"], space["alpha"]
     rng = np.random.default_rng(5)
     candidates = np.concatenate([2 * rng.normal(size=(10, 6)), [alpha + 0.05 * rng.normal(size=6)]])
-    problem = _problem(space)
+    problem = _problem(space, **{"poses.iterations": 2, "poses.realign": 2})
     calls, summed = [], []
     realign, straight = problem.realign, problem.straight_energies
 
@@ -465,16 +452,14 @@ def test_pose_stage_realigns_only_the_best_centroid_matched_candidates_and_still
     assert np.linalg.norm(path[-1] - alpha) < 0.2 * np.linalg.norm(alpha)
 
 
-@pytest.mark.parametrize("skip", [poses.POSE_SKIP, math.inf])
+@pytest.mark.parametrize("skip", [PoseSearch().skip, math.inf])
 def test_pose_stage_is_skipped_when_the_current_code_fits_far_better_than_every_candidate(space, monkeypatch, skip):
     # the current path ends at alpha* (the scan's own code) and every candidate is far: only the cheap
     # centroid-matched scores are taken, and the path comes back as it was; with no skip (inf) the same
     # stage re-aligns the current code and the best candidates
-    monkeypatch.setattr(poses, "POSE_SKIP", skip)
-    monkeypatch.setattr(poses, "POSE_ITER", 2)
     basis, alpha = space["basis"], space["alpha"]
     candidates = 3 * np.random.default_rng(7).normal(size=(6, 6))
-    problem = _problem(space)
+    problem = _problem(space, **{"poses.skip": skip, "poses.iterations": 2})
     calls, solved = [], []
     realign, solve = problem.realign, problem.solve_level
 
@@ -501,7 +486,7 @@ def test_a_prepared_basis_carries_its_constants_and_prealigns_exactly_as_one_com
     # extras; saved and loaded, registration uses them as stored, with the very candidates it computes
     # without them; moments stored for other prototypes are not used
     from bareesa import basis_io, h2_metric
-    from bareesa.registration import multiscale, prealign
+    from bareesa.registration import prealign
 
     basis = replace(space["basis"], extras=dict(space["basis"].extras), shape_weights=H2Weights(2, 1, 1, 1, 1, 5))
     protos = 0.5 * np.random.default_rng(8).normal(size=(5, 6))
@@ -511,13 +496,13 @@ def test_a_prepared_basis_carries_its_constants_and_prealigns_exactly_as_one_com
     basis_io.save_basis(tmp_path / "p.npz", basis)
     loaded = basis_io.load_basis(tmp_path / "p.npz")
     assert set(registration.PREPARED_EXTRAS) <= set(loaded.extras)
-    table = loaded.extras[multiscale.PROTOTYPE_MOMENTS]
+    table = loaded.extras[prepared.PROTOTYPE_MOMENTS]
     assert np.array_equal(table, prealign.moment_table(refs, basis.faces)) and table.shape == (5, 12)
     scan = to_scan_frame(space, space["scan"])
     with monkeypatch.context() as patch:
-        patch.setattr(multiscale, "moment_table", lambda *a: pytest.fail("moments recomputed"))
+        patch.setattr(prepared, "moment_table", lambda *a: pytest.fail("moments recomputed"))
         patch.setattr(h2_metric, "assembled_metric_matrix", lambda *a, **k: pytest.fail("metric recomputed"))
-        assert multiscale._reference_moments(loaded, protos, refs) is table
+        assert prepared.reference_moments(loaded, protos, refs) is table
         assert np.array_equal(loaded.template_metric(loaded.shape_weights), basis.template_metric(basis.shape_weights))
     stored = prealign.prealign_candidates(basis.template, basis.faces, scan, space["faces"], references=refs,
                                           reference_moments=table)
@@ -525,10 +510,10 @@ def test_a_prepared_basis_carries_its_constants_and_prealigns_exactly_as_one_com
     assert [(c.score, c.reference) for c in stored] == [(c.score, c.reference) for c in fresh]
     assert all(np.array_equal(a.transform.apply(scan), b.transform.apply(scan)) for a, b in zip(stored, fresh))
     other = protos[::-1].copy()
-    moments = multiscale._reference_moments(loaded, other, refs[::-1])
-    assert np.array_equal(moments, table[::-1]) and loaded.extras[multiscale.PROTOTYPE_MOMENTS] is table
-    loaded.extras[multiscale.PROTOTYPE_MOMENTS] = table[:, :9]  # a damaged table is computed afresh
-    assert np.array_equal(multiscale._reference_moments(loaded, protos, refs), table)
+    moments = prepared.reference_moments(loaded, other, refs[::-1])
+    assert np.array_equal(moments, table[::-1]) and loaded.extras[prepared.PROTOTYPE_MOMENTS] is table
+    loaded.extras[prepared.PROTOTYPE_MOMENTS] = table[:, :9]  # a damaged table is computed afresh
+    assert np.array_equal(prepared.reference_moments(loaded, protos, refs), table)
 
 
 def test_keops_kernels_are_built_before_the_levels_and_are_the_ones_a_registration_sums_with(space, monkeypatch,
@@ -602,16 +587,17 @@ def test_a_level_changes_the_scale_by_a_bounded_factor():
     # a free scale let a wrong alignment grow the template over a body scan (x1.9) and win the screening
     units = np.ones(7)
     center = np.array([0.1, -0.2, 0.3])
-    limit = math.exp(level_problem.SCALE_LOG_LIMIT)
+    bound = LevelSolve().scale_log_limit
+    limit = math.exp(bound)
     for l in (-50.0, -1.0, 1.0, 50.0):
-        s = level_problem.delta_similarity(np.r_[np.zeros(6), l], center, units).scale
+        s = level_problem.delta_similarity(np.r_[np.zeros(6), l], center, units, bound).scale
         assert 1 / limit - 1e-12 <= s <= limit + 1e-12
-    small = level_problem.delta_similarity(np.r_[np.zeros(6), 0.01], center, units)
+    small = level_problem.delta_similarity(np.r_[np.zeros(6), 0.01], center, units, bound)
     assert np.isclose(small.scale, math.exp(0.01), rtol=1e-3)  # near identity the scale is unchanged
     np.testing.assert_allclose(small.apply(center[None]), center[None], atol=1e-15)
     # the objective's map is the same bound as the transform a level returns
-    t = level_problem.log_scale(torch.tensor([-50.0, 0.01, 50.0], dtype=torch.float64))
-    scales = [level_problem.delta_similarity(np.r_[np.zeros(6), x], center, units).scale for x in (-50.0, 0.01, 50.0)]
+    t = level_problem.log_scale(torch.tensor([-50.0, 0.01, 50.0], dtype=torch.float64), bound)
+    scales = [level_problem.delta_similarity(np.r_[np.zeros(6), x], center, units, bound).scale for x in (-50.0, 0.01, 50.0)]
     np.testing.assert_allclose(np.exp(t.numpy()), scales, rtol=1e-14)
 
 
@@ -639,7 +625,7 @@ def test_orient_like_restores_flipped_faces_and_turns_nothing_on_a_consistent_no
 
 
 def test_level_kernels_default_is_binet_and_linear_at_the_finest_level_of_a_noisy_scan():
-    kernels = registration.multiscale.level_kernels
+    kernels = checks.level_kernels
     assert kernels("auto", 3) == ["binet", "binet", "binet"]
     assert kernels("auto", 3, noisy=True) == ["binet", "binet", "linear"]
     assert kernels("auto", 1, noisy=True) == ["binet"]
@@ -674,7 +660,7 @@ def test_default_data_term_is_not_biased_by_scan_noise_as_binet_is(space):
         noisy = space["surface"](u, space["alpha"]) + 0.06 * np.random.default_rng(seed).normal(size=u.shape)
         binet = registration.register(basis, noisy, faces, prealign=False, backend="dense", kernel="binet")
         res = registration.register(basis, noisy, faces, prealign=False, backend="dense")
-        assert res.normal_spread > registration.multiscale.NOISY_SPREAD and res.levels[-1]["kernel"] == "linear"
+        assert res.normal_spread > RegistrationConfig().noisy_spread and res.levels[-1]["kernel"] == "linear"
         for name, r in (("binet", binet), ("default", res)):
             errors[name].append(np.linalg.norm(r.vertices - truth, axis=1).mean())
     assert np.mean(errors["default"]) < 0.8 * np.mean(errors["binet"])
@@ -704,7 +690,7 @@ def test_a_levels_own_plateau_reaches_its_solve_and_is_checked(space, monkeypatc
     monkeypatch.setattr(level_problem, "minimize_lbfgs", lambda *a, **k: (seen.append(k["plateau"]), real(*a, **k))[1])
     res = registration.register(basis, space["scan"], space["faces"], prealign=False, backend="dense",
                                 schedule=(coarse, replace(fine, plateau=0.25)))
-    n, tol = level_problem.LEVEL_PLATEAU
+    n, tol = LevelSolve().plateau_window, LevelSolve().plateau
     assert seen == [(n, tol), (n, 0.25)] and tol != 0.25
     assert np.abs(res.code - space["alpha"]).max() < 0.1 * np.linalg.norm(space["alpha"])
     for bad in (0.0, 1.0, -1e-3):
@@ -742,14 +728,13 @@ def test_a_binned_level_uses_its_own_cell_size_unless_the_caller_gives_one(space
     real = level_problem.RegistrationProblem.level_loss
     monkeypatch.setattr(level_problem.RegistrationProblem, "level_loss",
                         lambda self, *a, **k: (seen.append(a[5]), real(self, *a, **k))[1])
-    problem = level_problem.RegistrationProblem(basis, space["scan"], np.asarray(space["faces"]), None, None, 1.0,
-                                                H2Weights.parse(basis.shape_metric), "dense",
-                                                "auto", False, torch.float64, "cpu",
+    config = RegistrationConfig(backend="dense", refine_transform=False)
+    problem = level_problem.RegistrationProblem(basis, space["scan"], np.asarray(space["faces"]), config,
                                                 Monitor("test", None, None))
     path = np.zeros((2, basis.n_fields))
     reports = [problem.solve_level(lv, path, Similarity(), (0, 1), "level", bin_cell=cell)[2]
                for lv, cell in ((fine, None), (replace(fine, bin_cell=0.9), None), (replace(fine, bin_cell=0.9), 1.3))]
-    assert seen == [level_problem.BIN_CELL, 0.9, 1.3] and level_problem.BIN_CELL not in (0.9, 1.3)
+    assert seen == [LevelSolve().bin_cell, 0.9, 1.3] and LevelSolve().bin_cell not in (0.9, 1.3)
     assert all(r["binned"] for r in reports) and len({r["varifold"] for r in reports}) == 3
     for bad in (0.0, -0.5, 3.0):
         with pytest.raises(InputError, match="bin_cell"):

@@ -1,12 +1,15 @@
 """Scans that cannot be registered are refused up front, with the reason, before any solve; a poor fit is flagged."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import trimesh
 
 from bareesa import registration, synthetic
 from bareesa.errors import InputError, MeshError
-from bareesa.registration import multiscale
+from bareesa.registration import checks, multiscale
+from bareesa.registration.config import Prealignment, RegistrationConfig, Screening
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +35,7 @@ def test_one_triangle_scan_is_refused_before_any_solve(basis, monkeypatch):
 
 
 def test_a_scan_with_too_few_faces_for_the_template_is_refused(basis):
-    need = min(multiscale.MIN_SCAN_FACES, basis.faces.shape[0] // 8)
+    need = min(RegistrationConfig().min_scan_faces, basis.faces.shape[0] // 8)
     sphere = trimesh.creation.icosphere(subdivisions=0)  # 20 faces
     assert len(sphere.faces) < need
     with pytest.raises(InputError, match=f"at least {need}"):
@@ -42,9 +45,9 @@ def test_a_scan_with_too_few_faces_for_the_template_is_refused(basis):
 def test_a_flat_sheet_is_refused_and_a_real_scan_is_not(basis):
     sheet = trimesh.creation.box(extents=(1.0, 1.0, 1e-3)).subdivide().subdivide().subdivide()
     with pytest.raises(InputError, match="the scan is flat"):
-        multiscale.check_plausible_scan(basis, sheet.vertices, sheet.faces)
+        checks.check_plausible_scan(basis, sheet.vertices, sheet.faces)
     u, faces = synthetic.resampled_sphere(2, seed=3)
-    multiscale.check_plausible_scan(basis, 2.5 * u, faces)  # a sphere of another size: accepted
+    checks.check_plausible_scan(basis, 2.5 * u, faces)  # a sphere of another size: accepted
 
 
 def test_faces_weighted_zero_do_not_count(basis):
@@ -52,7 +55,7 @@ def test_faces_weighted_zero_do_not_count(basis):
     weights = np.zeros(len(faces))
     weights[:10] = 1.0
     with pytest.raises(InputError, match="10 faces with area"):
-        multiscale.check_plausible_scan(basis, u, faces, weights)
+        checks.check_plausible_scan(basis, u, faces, weights)
 
 
 
@@ -94,11 +97,11 @@ def test_update_card_stores_entries_in_the_file_and_beside_it(basis, tmp_path):
 
 def test_prealignment_scale_stays_bounded_and_finite_on_a_scan_with_far_clutter():
     """A speck of clutter far from the body inflates the scan's moments; the refinement may change the
-    moment-matched scale by at most PREALIGN_LOG_SCALE_LIMIT (an unbounded log-scale overflowed)."""
+    moment-matched scale by at most ``prealignment.log_scale_limit`` (an unbounded log-scale overflowed)."""
     import math
 
     from bareesa import synthetic
-    from bareesa.registration.prealign import PREALIGN_LOG_SCALE_LIMIT, prealign_candidates, surface_moments
+    from bareesa.registration.prealign import prealign_candidates, surface_moments
 
     verts, faces = synthetic.icosphere(2)
     speck_v, speck_f = synthetic.icosphere(0)
@@ -108,7 +111,7 @@ def test_prealignment_scale_stays_bounded_and_finite_on_a_scan_with_far_clutter(
     matched = rho(verts, faces) / rho(scan_v, scan_f)
     for score, sim, _ in prealign_candidates(verts, faces, scan_v, scan_f):
         assert np.isfinite(score) and np.isfinite(sim.matrix()).all()
-        assert abs(math.log(sim.scale / matched)) <= PREALIGN_LOG_SCALE_LIMIT + 1e-9
+        assert abs(math.log(sim.scale / matched)) <= Prealignment().log_scale_limit + 1e-9
 
 
 def test_a_poor_fit_is_registered_again_from_other_alignments(basis, monkeypatch):
@@ -142,7 +145,7 @@ def test_a_poor_fit_is_registered_again_from_other_alignments(basis, monkeypatch
         staged.append("deep")
         out = real_deep(*args)
         staged.append("done")
-        screens.append((list(residuals), out, len(args[6])))  # args[6]: the candidates
+        screens.append((list(residuals), out, len(args[2])))  # args[2]: the candidates
         return out
 
     def poses_spy(*args, **kwargs):
@@ -169,14 +172,15 @@ def test_a_poor_fit_is_registered_again_from_other_alignments(basis, monkeypatch
 
             def short_retry_fails(*args, deep=False, **kwargs):
                 out = real_fit(*args, deep=deep, **kwargs)
-                if not deep and len(args[6]) > 1:  # the retry's short screening (args[6]: the candidates)
-                    out = {**out, "poor": True, "residual": 10 * once.residual}
+                if not deep and len(args[2]) > 1:  # the retry's short screening (args[2]: the candidates)
+                    out = dataclasses.replace(out, poor=True, residual=10 * once.residual)
                 return out
 
             monkeypatch.setattr(multiscale, "_fit", short_retry_fails)
             staged.clear()
             deeper = registration.register(basis, scan, faces, schedule=schedule, pose_candidates=code[None] + 0.1)
-            (screened, (_, _, _, order, best), n_candidates), = screens
+            (screened, start, n_candidates), = screens
+            order, best = start.order, start.best
             assert len(screened) == n_candidates == deeper.retried_alignments
             inside = staged[staged.index("deep") + 1:staged.index("done")]
             assert inside == ["pose"] * n_candidates  # one pose stage per alignment screened deeper
@@ -191,7 +195,7 @@ def test_a_poor_fit_is_registered_again_from_other_alignments(basis, monkeypatch
 
 def test_with_pose_prototypes_the_first_fit_starts_from_the_best_prealignment(basis, monkeypatch):
     """With pose prototypes the pre-alignment's ranking decides the first fit (no screening of the others,
-    unless they score within PREALIGN_TIE of the best); a poor fit is retried from the other candidates in
+    unless they score within ``prealignment.tie`` of the best); a poor fit is retried from the other candidates in
     that order, then the fit's half turns. Without prototypes every candidate is screened, as before."""
     from bareesa.latent import Level
 
@@ -206,7 +210,7 @@ def test_with_pose_prototypes_the_first_fit_starts_from_the_best_prealignment(ba
     tried, real_fit = [], multiscale._fit
 
     def fit_spy(*args, **kwargs):
-        tried.append(list(args[6]))  # args[6]: the candidate alignments
+        tried.append(list(args[2]))  # args[2]: the candidate alignments
         return real_fit(*args, **kwargs)
 
     monkeypatch.setattr(multiscale, "_fit", fit_spy)
@@ -226,7 +230,7 @@ def test_with_pose_prototypes_the_first_fit_starts_from_the_best_prealignment(ba
     assert tried[1][:2] == ranked[1:] and len(tried[1]) == 2 + len(flips) == again.retried_alignments
     assert tried[2] == tried[1]  # the deeper screening of the same alignments
     tried.clear()
-    tie = [ranked[0], ranked[1]._replace(score=ranked[0].score * (0.99 + multiscale.PREALIGN_TIE) / 2), ranked[2]]
+    tie = [ranked[0], ranked[1]._replace(score=ranked[0].score * (0.99 + Prealignment().tie) / 2), ranked[2]]
     monkeypatch.setattr(multiscale, "prealign_candidates", lambda *a, **k: list(tie))
     registration.register(basis, scan, faces, schedule=schedule, pose_candidates=prototypes, retry=False)
     assert tried == [tie[:2]]  # the pre-alignment cannot tell the best two apart: both screened
@@ -234,7 +238,7 @@ def test_with_pose_prototypes_the_first_fit_starts_from_the_best_prealignment(ba
 
 def test_with_pose_prototypes_the_first_level_is_the_short_screening_solve(basis):
     """With pose prototypes even a lone alignment runs the first level as the screening does (one step,
-    1/SCREEN_DIVISOR of its iterations) and a short second level, from which the pose stage and the second
+    1/``screening.divisor`` of its iterations) and a short second level, from which the pose stage and the second
     level go on; without prototypes a lone alignment runs the whole first level, and the code is as close."""
     from bareesa.latent import Level
 
@@ -247,7 +251,7 @@ def test_with_pose_prototypes_the_first_level_is_the_short_screening_solve(basis
     plain = []
     whole = registration.register(basis, scan, faces, schedule=schedule, prealign=False, pose_candidates=None,
                                   callback=lambda e: plain.append(e.message))
-    screen_iter = 160 // multiscale.SCREEN_DIVISOR
+    screen_iter = 160 // Screening().divisor
     assert quick.levels[0]["steps"] == 1 and quick.levels[0]["iterations"] <= screen_iter
     assert any("(screening)" in m for m in messages)
     assert whole.levels[0]["steps"] == 2 and not any("(screening)" in m for m in plain)

@@ -40,11 +40,10 @@ def test_symmetric_matching_of_two_scans_solves_with_the_given_metric_steps_and_
     basis, surface = sphere
     seen = {}
 
-    def fake(b, scan0, scan1, steps=10, schedule=None, weights=None, prealign=True, kernel="auto",
-             face_weights=(None, None), landmarks=(None, None), landmark_weight=1.0, callback=None, cancel=None,
-             dtype=None, device="cpu"):
-        seen.update(weights=weights, steps=steps, schedule=schedule, device=device, kernel=kernel,
-                    face_weights=face_weights, landmarks=landmarks)
+    def fake(b, scan0, scan1, steps=10, config=None, weights=None, face_weights=(None, None),
+             landmarks=(None, None), callback=None, cancel=None):
+        seen.update(weights=weights, steps=steps, schedule=config.schedule, device=config.device,
+                    kernel=config.kernel, face_weights=face_weights, landmarks=landmarks)
         path = geodesics.straight_path(A, B, steps)
         return registration.Matching(path=path, energy=1.0, distance=1.0, transforms=(Similarity(), Similarity()),
                                      varifold=(0.0, 0.0), seconds=0.0)

@@ -76,12 +76,26 @@ def metric(context, basis):
     return solver.metric(basis, s.metric, s.metric_custom)
 
 
-def solve_options(context, basis):
-    """The panel's metric, schedule, pre-alignment, geodesic steps and iterations and device: -> workflows.Options."""
+def registration_settings(context):
+    """The panel's registration settings beyond schedule and pre-alignment (pose search, retries, the Settings
+    field's KEY=VALUE items): -> dict of ``RegistrationConfig`` overrides."""
     s = settings(context)
-    return workflows().Options(weights=metric(context, basis), schedule=solver.schedule(basis, s.schedule),
-                               prealign=s.prealign, steps=s.steps, max_iter=s.geodesic_iterations,
-                               device=solver_device(context))
+    out = {"retry": bool(s.retry_poor_fits)}
+    if not s.pose_search:
+        out["poses.candidates"] = None
+    out.update(solver.module("registration.config").parse_settings(s.registration_settings))
+    return out
+
+
+def solve_options(context, basis):
+    """The panel's metric, schedule, pre-alignment and registration settings, geodesic steps and iterations and
+    device: -> workflows.Options (InputError naming a bad registration setting)."""
+    s = settings(context)
+    options = workflows().Options(weights=metric(context, basis), schedule=solver.schedule(basis, s.schedule),
+                                  prealign=s.prealign, steps=s.steps, max_iter=s.geodesic_iterations,
+                                  device=solver_device(context), registration=registration_settings(context))
+    options.registration_config(basis)  # unknown or bad settings refused before any solve starts
+    return options
 
 
 def is_registered(obj):

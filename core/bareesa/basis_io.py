@@ -117,6 +117,7 @@ def load_basis(name_or_path):
                  schedule=card.get("schedule", PAPER_BODY_SCHEDULE), scale=card.get("scale", 1.0),
                  units=card.get("units", ""), name=card.get("name", path.stem),
                  provenance=card.get("provenance", {}), fit_check=card.get("fit_check", {}),
+                 registration=card.get("registration", {}),
                  landmarks=card.get("landmarks", {}), shape_weights=card.get("shape_metric"),
                  extras={k[6:]: v for k, v in data.items() if k.startswith("extra_")})
 

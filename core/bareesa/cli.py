@@ -27,6 +27,7 @@ from .masks import read_face_weights
 from .mesh import load_mesh, save_mesh, validate_mesh
 from .progress import tqdm_callback
 from .registration import prepare_basis
+from .registration.config import parse_settings
 from .scan_simulator import add_simulate_scan_arguments, apply_similarity, simulate_scan, simulate_scan_cli
 from .statistics import fit_training_distribution, pose_prototypes, sample_velocities
 from .workflows import (KnownCode, Options, Scan, TemplateMesh, check_device, code_of, extrapolate, geodesic_between,
@@ -34,12 +35,42 @@ from .workflows import (KnownCode, Options, Scan, TemplateMesh, check_device, co
 
 
 def _options(args, **kwargs):
-    """The workflows.Options of a verb: its --device (checked) and the given fields."""
-    return Options(device=check_device(args.device), **kwargs)
+    """The workflows.Options of a verb: its --device (checked), its registration settings (--config, --set)
+    and the given fields."""
+    return Options(device=check_device(args.device), registration=registration_overrides(args), **kwargs)
 
 
 def _add_device(p):
     p.add_argument("--device", default="cpu", help="where the solver runs: cpu (default), cuda or cuda:N")
+    _add_settings(p)
+
+
+def _add_settings(p):
+    p.add_argument("--config", type=Path, metavar="FILE",
+                   help="registration settings: a JSON object of RegistrationConfig settings, e.g. "
+                        '{"retry": false, "poses": {"finalists": 3}} (bareesa register --show-config lists them)')
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
+                   help="one registration setting, after --config's (repeatable): e.g. --set poses.finalists=3 "
+                        "--set retry=false")
+
+
+def registration_overrides(args):
+    """The registration settings of --config FILE and --set KEY=VALUE (in that order): -> dict (InputError on a
+    missing file, bad JSON or a malformed --set; unknown keys are refused when the configuration is built)."""
+    out = {}
+    if getattr(args, "config", None) is not None:
+        try:
+            given = json.loads(Path(args.config).read_text())
+        except OSError as err:
+            raise InputError(f"--config {args.config}: cannot read it ({err.strerror or err})") from None
+        except ValueError as err:
+            raise InputError(f"--config {args.config}: not JSON ({err})") from None
+        if not isinstance(given, dict):
+            raise InputError(f"--config {args.config}: expected a JSON object of settings")
+        out.update(given)
+    for item in getattr(args, "settings", None) or []:
+        out.update(parse_settings(item))
+    return out
 
 
 def _print(result, as_json, title=None):
@@ -286,6 +317,12 @@ def cmd_register(args):
     """Latent code of a raw scan; writes the registered mesh (template topology, scan's frame)."""
     options = _options(args, kernel=args.kernel)
     basis = load_basis(args.basis)
+    config = options.registration_config(basis)  # (unknown or bad settings refused before the scan is read)
+    if args.show_config:
+        print(config.describe())
+        return
+    if args.output is None:
+        raise InputError("register: -o/--output is required (the registered mesh to write)")
     verts, faces = load_mesh(args.scan)
     validate_mesh(verts, faces, name=str(args.scan))
     landmarks = read_scan_landmarks(args.landmarks, basis) if args.landmarks else None
@@ -337,7 +374,8 @@ def cmd_register_batch(args):
     device = args.device if args.scheduler else check_device(args.device)
     report = register_batch(args.basis, scans, args.output, workers=args.workers,
                             threads_per_worker=args.threads_per_worker, scheduler=args.scheduler,
-                            options=None if device == "cpu" else {"device": device},
+                            options={**({} if device == "cpu" else {"device": device}),
+                                     **_batch_settings(args)},
                             sequence=args.sequence, chunk=args.chunk, progress=not args.json,
                             log=lambda text: print(text, file=sys.stderr))
     if args.json:
@@ -354,6 +392,14 @@ def cmd_register_batch(args):
                   f"{seam['ratio']:.1f} x the median motion")
     _print({**report.counts, "seconds": report.seconds, "summary": str(report.output / "summary.csv")}, False,
            f"register-batch onto basis '{args.basis}'")
+
+
+def _batch_settings(args):
+    """register-batch's --config / --set as ``register`` keywords, checked against the basis first."""
+    settings = registration_overrides(args)
+    if settings:
+        Options(registration=settings).registration_config(load_basis(args.basis))
+    return settings
 
 
 def cmd_simulate_scan(args):
@@ -456,7 +502,8 @@ def build_parser():
     p = sub.add_parser("register", help="register a raw scan onto a basis' template")
     p.add_argument("scan", type=Path)
     p.add_argument("--basis", default=DEFAULT_BASIS, help=f"bundled basis name or .npz path (default: {DEFAULT_BASIS})")
-    p.add_argument("-o", "--output", type=Path, required=True, help="registered mesh (template topology)")
+    p.add_argument("-o", "--output", type=Path, help="registered mesh (template topology; required unless "
+                                                       "--show-config)")
     p.add_argument("--landmarks", type=Path,
                    help="where the basis' named landmarks are on the scan: JSON {name: [x, y, z]} or CSV lines "
                         "'name, x, y, z[, weight]' (a template vertex index may stand for a name)")
@@ -465,6 +512,9 @@ def build_parser():
                    help="varifold kernel: auto (default) is binet, and linear at the finest level of a noisy scan "
                         "(its faces wound consistently first); binet or linear on every level")
     _add_device(p)
+    p.add_argument("--show-config", action="store_true",
+                   help="print the registration settings this command would use (basis card, --config, --set) and "
+                        "exit")
     p.add_argument("--json", action="store_true", help="print JSON (code, varifold, chamfer, seconds, levels)")
     p.set_defaults(func=cmd_register)
 
@@ -484,6 +534,7 @@ def build_parser():
     p.add_argument("--chunk", type=int, metavar="K", help="with --sequence: frames per chunk run in parallel")
     p.add_argument("--device", default="cpu",
                    help="where the workers solve: cpu (default), cuda or cuda:N (then one worker per GPU)")
+    _add_settings(p)
     p.add_argument("--json", action="store_true", help="print JSON (counts, seams, a row per scan)")
     p.set_defaults(func=cmd_register_batch)
 

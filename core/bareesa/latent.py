@@ -34,10 +34,10 @@ class Level:
     any units); ``weight`` multiplies the varifold term (the paper's lambda);
     ``steps`` is the number of time steps of the latent path; the level ends after ``max_iter``
     iterations, or when its objective fell by less than ``plateau`` (relative) over the last few
-    iterations (None: ``registration.problem.LEVEL_PLATEAU``'s); ``binned``: whether the level's
-    varifold is summed over cells when ``register``'s binning is "auto" (None: its pair-count rule,
-    ``registration.problem.BIN_GAIN``); ``bin_cell``: the size of those cells in units of sigma (None:
-    ``varifold.BIN_CELL``).
+    iterations (None: ``RegistrationConfig.solve.plateau``); ``binned``: whether the level's
+    varifold is summed over cells when the registration's binning is "auto" (None: its pair-count rule,
+    ``RegistrationConfig.solve.bin_gain``); ``bin_cell``: the size of those cells in units of sigma
+    (None: ``RegistrationConfig.solve.bin_cell``).
     """
 
     sigma: float
@@ -60,10 +60,8 @@ class Level:
 
 
 #: The paper's body schedule (sigma 0.4 -> 0.1 -> 0.025 m on ~1.7 m bodies), relative to height.
-#: Iteration caps are ours; a level also ends when it has plateaued (``registration.LEVEL_PLATEAU``):
-#: a smooth synthetic deformation plateaus within ~15 iterations per level, a held-out body pose
-#: needs the caps (with caps of 15 iterations its mean vertex error was 10x worse). Bases store
-#: their schedule: changing these only affects bases built afterwards.
+#: Iteration caps are ours (a level also ends when it has plateaued): a held-out body pose needs them.
+#: Bases store their schedule: changing these only affects bases built afterwards.
 PAPER_BODY_SCHEDULE = (Level(0.4 / 1.7, 1e1, 2, 100), Level(0.1 / 1.7, 1e5, 3, 100), Level(0.025 / 1.7, 1e10, 5, 40))
 
 
@@ -89,6 +87,9 @@ class Basis:
     #: how a registration's residual compares with the basis' own (``registration.multiscale``):
     #: {"poor_fit_above": threshold, "held_out_p95": ..., "scans": n, "measured_by": ...}; {} uncalibrated
     fit_check: dict = field(default_factory=dict)
+    #: the card's overrides of registration settings (``registration.RegistrationConfig.from_basis``):
+    #: {"poses": {"finalists": 3}, "retry": false, ...}; {} none
+    registration: dict = field(default_factory=dict)
     #: named anatomical landmarks of the template: {name: template vertex index}; {} none
     landmarks: dict = field(default_factory=dict)
     #: H2 weights for shapes reached from the template (None: ``weights``): registration's regularizer,
@@ -159,6 +160,7 @@ class Basis:
                 **({"shape_metric": list(H2Weights.parse(self.shape_weights).as_tuple())}
                    if self.shape_weights is not None else {}),
                 **({"fit_check": self.fit_check} if self.fit_check else {}),
+                **({"registration": self.registration} if self.registration else {}),
                 **({"landmarks": self.landmarks} if self.landmarks else {})}
 
 

@@ -10,7 +10,7 @@ callback, cancellation through a ``CancelToken``. Solvers are called through the
 at call time (``shooting.shoot``, ``geodesics.keyframe_path``), so tests can replace them.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -60,7 +60,8 @@ def mesh_input(basis, verts, faces):
 @dataclass(frozen=True)
 class Options:
     """How the workflows solve: H2 weights (None: the basis'), registration schedule (None: the
-    basis'), pre-alignment and varifold kernel (``registration.register``'s ``kernel``), geodesic
+    basis'), pre-alignment and varifold kernel (``RegistrationConfig``'s), further registration settings
+    (``registration``: overrides of ``RegistrationConfig``, dotted keys such as "poses.finalists"), geodesic
     time points and L-BFGS cap, torch device and dtype (and ``path_dtype``, that of a geodesic between
     two known codes).
 
@@ -78,6 +79,16 @@ class Options:
     device: str = "cpu"
     dtype: torch.dtype = torch.float64
     path_dtype: torch.dtype | None = torch.float32
+    registration: dict = field(default_factory=dict)
+
+    def registration_config(self, basis):
+        """The ``RegistrationConfig`` of a scan's registration: the basis' defaults, these options' schedule,
+        pre-alignment, kernel, metric, device and dtype, then the ``registration`` overrides."""
+        settings = {"prealign": self.prealign, "kernel": self.kernel, "metric": self.weights, "dtype": self.dtype,
+                    "device": self.device}
+        if self.schedule is not None:
+            settings["schedule"] = self.schedule
+        return registration.RegistrationConfig.from_basis(basis, **settings).with_overrides(self.registration)
 
     def path_tensors(self, basis):
         """The basis' tensors in which a geodesic between two known codes is solved: ``path_dtype`` (None:
@@ -151,11 +162,9 @@ def code_of(basis, item, options=Options(), callback=None, cancel=None):
         code = latent.project_to_basis(basis, item.verts)[0]
         return Code(code, detail=latent.off_basis_detail(basis, item.verts, code))
     if isinstance(item, Scan):
-        res = registration.register(basis, item.verts, item.faces, schedule=options.schedule,
-                                    prealign=options.prealign, landmarks=item.landmarks,
-                                    scan_face_weights=item.face_weights, metric=options.weights,
-                                    kernel=options.kernel, callback=callback, cancel=cancel, dtype=options.dtype,
-                                    device=options.device)
+        res = registration.register(basis, item.verts, item.faces, options.registration_config(basis),
+                                    landmarks=item.landmarks, scan_face_weights=item.face_weights,
+                                    callback=callback, cancel=cancel)
         return Code(res.code, registration=res)
     raise InputError(f"an input is a Scan, a TemplateMesh or a KnownCode, got {type(item).__name__}")
 
@@ -221,12 +230,10 @@ def geodesic_between(basis, a, b, options=Options(), callback=None, cancel=None)
     weights = options.metric(basis)
     if isinstance(a, Scan) and isinstance(b, Scan):
         m = registration.symmetric_match(basis, (a.verts, a.faces), (b.verts, b.faces), steps=options.steps,
-                                         schedule=options.schedule,
+                                         config=options.registration_config(basis),
                                          weights=None if options.weights is None else weights,  # basis' own two
-                                         prealign=options.prealign, kernel=options.kernel,
                                          face_weights=(a.face_weights, b.face_weights),
-                                         landmarks=(a.landmarks, b.landmarks), callback=callback, cancel=cancel,
-                                         dtype=options.dtype, device=options.device)
+                                         landmarks=(a.landmarks, b.landmarks), callback=callback, cancel=cancel)
         ends = tuple(Code(e.code, registration=e) for e in matched_ends(basis, m, (a, b)))
         return LatentPath(ends=ends, path=m.path, distance=m.distance, matching=m)
     lo = _scan_share((a, b))

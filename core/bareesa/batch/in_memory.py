@@ -50,7 +50,7 @@ def plain_options(options):
     schedule = None if options.schedule is None else [asdict(lv) if not isinstance(lv, dict) else lv
                                                       for lv in options.schedule]
     return {"schedule": schedule, "prealign": bool(options.prealign), "metric": weights, "kernel": options.kernel,
-            "dtype": options.dtype, "device": options.device}
+            "dtype": options.dtype, "device": options.device, **dict(options.registration)}
 
 
 def register_array(basis_path, scan, index, options, threads=1, progress_every=PROGRESS_EVERY):

@@ -15,21 +15,29 @@ at every level (``refine_transform``). The schedule is multiscale (sigma decreas
 and steps increasing); each level is warm-started from the last, its latent path resampled
 linearly in time to the new number of steps.
 
-Modules, in dependency order: ``prealign`` (candidate alignments from any orientation),
-``problem`` (one level's objective, preconditioning, re-alignment and scoring), ``poses``
-(typical poses tried as starts of the second level), ``multiscale`` (``register``: the
-schedule from pre-alignment to the finest level), ``symmetric`` (two raw scans and the
-geodesic between them in one solve).
+Every setting lives in one frozen ``RegistrationConfig`` (``config``), defaulted from the basis card.
+Modules, in dependency order: ``config`` (the settings), ``prealign`` (candidate alignments from any
+orientation), ``problem`` (one level's objective, preconditioning, re-alignment and scoring),
+``checks`` (input checks and the poor-fit test), ``prepared`` (per-basis constants kept in the basis),
+``result``, ``poses`` (typical poses tried as starts of the second level), ``multiscale``
+(``register``: the schedule from pre-alignment to the finest level), ``symmetric`` (two raw scans and
+the geodesic between them in one solve).
 
 Frames: registration happens in the template frame; ``RegistrationResult.vertices`` are mapped
 back with the inverse similarity, so they overlay the scan in the scan's units.
 """
 
-from .multiscale import PREPARED_EXTRAS, RegistrationResult, prepare_basis, register
+from .config import (LevelSolve, MatchingSolve, PoseSearch, Prealignment, RegistrationConfig, Screening,
+                     check_schedule)
+from .multiscale import register
 from .poses import pose_starts
 from .prealign import Alignment, align_to_template, prealign_candidates, surface_moments
+from .prepared import PREPARED_EXTRAS, prepare_basis
 from .problem import resample_in_time
+from .result import RegistrationResult
 from .symmetric import Matching, symmetric_match
 
-__all__ = ["PREPARED_EXTRAS", "Alignment", "Matching", "RegistrationResult", "align_to_template", "pose_starts",
-           "prealign_candidates", "prepare_basis", "register", "resample_in_time", "surface_moments", "symmetric_match"]
+__all__ = ["PREPARED_EXTRAS", "Alignment", "LevelSolve", "Matching", "MatchingSolve", "PoseSearch", "Prealignment",
+           "RegistrationConfig", "RegistrationResult", "Screening", "align_to_template", "check_schedule",
+           "pose_starts", "prealign_candidates", "prepare_basis", "register", "resample_in_time", "surface_moments",
+           "symmetric_match"]

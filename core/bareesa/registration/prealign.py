@@ -26,22 +26,7 @@ from ..optimize import minimize_lbfgs
 from ..progress import Monitor
 from ..transforms import Similarity, axis_angle_rotation, rotation_angle
 from ..varifold import BinnedMeasureLoss, cell_features, moved_measure, varifold_measure
-
-#: Pre-alignment sigmas (scoring/refinement, final refinement), in units of the RMS radius.
-PREALIGN_SIGMAS = (0.5, 0.25)
-PREALIGN_CELL = 0.5         # bin size of the binned measure, in units of its sigma
-PREALIGN_REFINE = 8         # candidates refined at the coarse sigma
-PREALIGN_KEEP = 6           # distinct ones refined at the finer sigma and tried by the first level
-PREALIGN_DISTINCT = 20.0    # degrees between two distinct candidates
-PREALIGN_RATIO = 4.0        # candidates whose varifold is within this factor of the best's are tried
-PREALIGN_MAX_ITER = 40
-#: Reference surfaces (``prealign_candidates(references=)``) whose normalised second moments are nearest
-#: the scan's are tried besides the template
-PREALIGN_REFERENCES = 4
-#: The refinement changes the moment-matched scale by at most this factor (log, bounded smoothly): an
-#: unbounded log-scale let a line search try e^(hundreds) and the objective overflow on plain body scans
-PREALIGN_LOG_SCALE_LIMIT = math.log(4.0)
-
+from .config import Prealignment
 
 class Alignment(NamedTuple):
     """A candidate alignment: score (the normalised squared varifold it reached), transform (Similarity
@@ -53,11 +38,12 @@ class Alignment(NamedTuple):
     reference: int = None
 
 
-def _bounded_log_scale(l):
-    """The refinement's log-scale (tensor or float) mapped smoothly into +-PREALIGN_LOG_SCALE_LIMIT."""
+def bounded_log_scale(l, limit):
+    """The refinement's log-scale (tensor or float) mapped smoothly into +-limit: an unbounded one let a
+    line search try e^(hundreds) and overflow."""
     if isinstance(l, torch.Tensor):
-        return PREALIGN_LOG_SCALE_LIMIT * torch.tanh(l / PREALIGN_LOG_SCALE_LIMIT)
-    return PREALIGN_LOG_SCALE_LIMIT * math.tanh(l / PREALIGN_LOG_SCALE_LIMIT)
+        return limit * torch.tanh(l / limit)
+    return limit * math.tanh(l / limit)
 
 
 def _area_centroid(verts, faces, face_weights):
@@ -143,20 +129,22 @@ def _candidate_rotations(axes_t, axes_s):
 
 
 def prealign_candidates(template_verts, template_faces, scan_verts, scan_faces, scan_face_weights=None,
-                        keep=PREALIGN_KEEP, monitor=None, progress=(0.0, 1.0), references=None,
-                        reference_moments=None):
+                        keep=None, monitor=None, progress=(0.0, 1.0), references=None,
+                        reference_moments=None, settings=None):
     """Distinct candidate alignments of a scan to a template, best first: -> [Alignment].
 
     template (N, 3), (F, 3); scan (M, 3), (G, 3); scan_face_weights (G,) or None (zero-weight
     faces are ignored); references (K, N, 3) or None: other surfaces with the template's faces, in
-    its frame (decoded pose prototypes), of which the PREALIGN_REFERENCES with normalised second
+    its frame (decoded pose prototypes), of which the ``settings.references`` with normalised second
     moments nearest the scan's give candidates too; reference_moments (K, 12) or None: their centroids
     and second moments as ``moment_table`` gives them (computed here when None). Each transform maps
     scan coordinates into the template frame; the score is the (binned, binet) squared distance at the
     finer pre-alignment sigma between the normalised template (or reference) and the mapped scan, over
-    the former's squared norm. At most ``keep`` candidates, pairwise more than PREALIGN_DISTINCT degrees
-    apart.
+    the former's squared norm. At most ``keep`` (None: ``settings.keep``) candidates, pairwise more than
+    ``settings.distinct_degrees`` apart. settings: a ``config.Prealignment`` (None: its defaults).
     """
+    settings = Prealignment() if settings is None else settings
+    keep = settings.keep if keep is None else keep
     monitor = monitor or Monitor("prealign")
     lo, hi = progress
     tf = np.asarray(template_faces, np.int64)
@@ -178,13 +166,13 @@ def prealign_candidates(template_verts, template_faces, scan_verts, scan_faces, 
         targets.append((ct, rho_t, verts, axes, spread / rho_t ** 2, k - 1 if k else None))
     spread_s, axes_s = np.linalg.eigh(ms)
     nearest = sorted(range(1, len(targets)), key=lambda i: np.abs(targets[i][4] - spread_s / rho_s ** 2).sum())
-    targets = targets[:1] + [targets[i] for i in nearest[:PREALIGN_REFERENCES]]
+    targets = targets[:1] + [targets[i] for i in nearest[:settings.references]]
 
     cache = {}
 
     def objective(i, sigma):
         """The coarse varifold against target i at sigma (its measures built once)."""
-        cell = PREALIGN_CELL * sigma
+        cell = settings.cell * sigma
         if sigma not in cache:
             cache[sigma] = coarse_measure(zs, sf, scan_face_weights, cell)
         if (i, sigma) not in cache:
@@ -195,37 +183,37 @@ def prealign_candidates(template_verts, template_faces, scan_verts, scan_faces, 
     zero = torch.zeros(7, dtype=torch.float64)
     scored = []  # (score, surface, rotation)
     for i, target in enumerate(targets):
-        coarse = objective(i, PREALIGN_SIGMAS[0])
+        coarse = objective(i, settings.sigmas[0])
         for r in _candidate_rotations(target[3], axes_s):
             monitor.check()
             with torch.no_grad():
                 scored.append((float(coarse(zero, torch.from_numpy(r))) / coarse.self_t, i, r))
     scored.sort(key=lambda c: c[0])
-    span = (hi - lo) / (PREALIGN_REFINE + keep + 1)
+    span = (hi - lo) / (settings.refine + keep + 1)
     monitor.report(lo + span, "pre-alignment: candidates scored", scored[0][0])
 
     def refine(obj, r, x0, k):
-        bounded = lambda p: torch.cat([p[:6], _bounded_log_scale(p[6:])])  # noqa: E731
+        bounded = lambda p: torch.cat([p[:6], bounded_log_scale(p[6:], settings.log_scale_limit)])  # noqa: E731
         x, value, _ = minimize_lbfgs(lambda p: obj(bounded(p), torch.from_numpy(r)), x0, monitor,
-                                     max_iter=PREALIGN_MAX_ITER, progress=(lo + k * span, lo + (k + 1) * span),
+                                     max_iter=settings.max_iter, progress=(lo + k * span, lo + (k + 1) * span),
                                      message="pre-alignment", gtol=1e-9, ftol=1e-10)
         return axis_angle_rotation(x[:3]) @ r, x, value / obj.self_t
 
     stage = []
-    for k, (_, i, r0) in enumerate(scored[:PREALIGN_REFINE]):
-        r, x, value = refine(objective(i, PREALIGN_SIGMAS[0]), r0, np.zeros(7), k + 1)
+    for k, (_, i, r0) in enumerate(scored[:settings.refine]):
+        r, x, value = refine(objective(i, settings.sigmas[0]), r0, np.zeros(7), k + 1)
         stage.append((value, i, r, x))
     stage.sort(key=lambda s: s[0])
     distinct = []
     for value, i, r, x in stage:
-        if all(rotation_angle(r, d[2]) > PREALIGN_DISTINCT for d in distinct):
+        if all(rotation_angle(r, d[2]) > settings.distinct_degrees for d in distinct):
             distinct.append((value, i, r, x))
     out = []
     for k, (_, i, r0, x0) in enumerate(distinct[:keep]):
         ct, rho_t = targets[i][:2]
         x0 = np.concatenate([np.zeros(3), x0[3:]])
-        r, x, value = refine(objective(i, PREALIGN_SIGMAS[1]), r0, x0, PREALIGN_REFINE + 1 + k)
-        scale = rho_t * math.exp(_bounded_log_scale(float(x[6]))) / rho_s
+        r, x, value = refine(objective(i, settings.sigmas[1]), r0, x0, settings.refine + 1 + k)
+        scale = rho_t * math.exp(bounded_log_scale(float(x[6]), settings.log_scale_limit)) / rho_s
         out.append(Alignment(value, Similarity(r, scale, ct + rho_t * x[3:6] - scale * r @ cs), targets[i][5]))
     out.sort(key=lambda c: c[0])
     monitor.report(hi, "pre-alignment done", out[0][0])

@@ -18,72 +18,22 @@ from ..latent import decode, interior_whitening, whitening
 from ..mesh import face_geometry, smoothed_normals, winding_parity
 from ..optimize import minimize_lbfgs
 from ..transforms import Similarity, axis_angle_rotation
-from ..varifold import BIN_CELL, BinnedMeasureLoss, BinnedVarifoldLoss, VarifoldLoss, default_cutoff, is_oriented
-from .prealign import PREALIGN_CELL, CoarseVarifold, coarse_measure, surface_centroid, surface_moments
+from ..varifold import BinnedMeasureLoss, BinnedVarifoldLoss, VarifoldLoss, default_cutoff, is_oriented
+from .config import RegistrationConfig
+from .prealign import CoarseVarifold, coarse_measure, surface_centroid, surface_moments
 
-#: L-BFGS stops a level when an iteration lowers the objective by less than this relative amount
-#: (the objective is dominated by weight x varifold; later digits only polish the path's interior)
-LEVEL_FTOL = 1e-9
-#: ... and when it fell by less than LEVEL_PLATEAU[1] (relative; a level's own ``Level.plateau`` instead
-#: when it has one) over the last LEVEL_PLATEAU[0] iterations: easy problems plateau within ~15
-#: iterations, a body in a new pose needs ~100
-LEVEL_PLATEAU = (5, 1e-3)
-#: ... keeping this many past steps (``minimize_lbfgs(memory=)``): on slow `human` finest levels (90-133
-#: iterations, a limb sliding into place late) 100 instead of 20 reached a lower objective in about as
-#: many iterations (vertex error 1.74 -> 1.32 mm on one scan, bench/README)
-LEVEL_MEMORY = 100
-BIN_GAIN = 0.05             # "auto" bins a level when that leaves at most this share of face pairs
-#: Unbinned levels: truncation tolerance of the varifold kernel (cutoff sigma sqrt(log(1/tol)),
-#: relative error of d^2 ~1e-6 at paper scale) and cell size, in units of sigma, of the scan's
-#: ``binned_measure`` (None: the scan's faces are used as they are)
-FINE_TOL = 1e-4
-SCAN_CELL = 0.5
-#: ... and for an oriented kernel (linear), whose accuracy the coarser cells cost: paper scale 1.23 mm
-#: at sigma/2, 0.88 at sigma/3.3, 0.85 at sigma/4, 0.78 unbinned (bench/registration_accuracy)
-ORIENTED_SCAN_CELL = 0.3
-#: Unbinned levels with an orientation-free kernel may see the scan's normals denoised over rings of
-#: neighbouring faces (``mesh.smoothed_normals``) out to about this x sigma (rings = radius / mean edge
-#: length, at most SCAN_NORMAL_RINGS). Off (0): at paper scale it cuts binet's noise bias from 3.6 to
-#: 2.5 mm (1.9 at 2 sigma), but the linear kernel that a noisy scan gets removes it (0.88 mm), and on
-#: coarse clean scans the smoothing costs accuracy (bench/registration_accuracy)
-SCAN_NORMAL_RADIUS = 0.0
-SCAN_NORMAL_RINGS = 8
-#: the kernel candidate alignments and poses are compared with: it ignores the scan's face orientation
-SCREEN_KERNEL = "binet"
-#: a level changes the similarity's scale by at most this factor (log): pre-alignment matched the
-#: surface areas, and a free scale let wrong alignments grow the template over the scan (x1.9)
-SCALE_LOG_LIMIT = math.log(1.15)
-#: screened alignments are compared on cells of this x sigma (both surfaces): the level's own coarse
-#: binning (BIN_CELL) errs differently per alignment
-SCREEN_CELL = 0.25
-#: L-BFGS steps of the re-alignment of a candidate start (``RegistrationProblem.realign``): on 29 held-out
-#: `human` scans whose pose stage ran (2026-12-06, session 37) 10 picked the same finalists as 15 on every
-#: one, their scores within 0.55 % on 19 of the 21 with finalists (8 % on two, where the current code's
-#: own re-alignment converges last), at ~3/4 of the time (bench/README)
-POSE_ALIGN_ITER = 10
-#: a level's progress reports carry the code and alignment so far every this many iterations
-PREVIEW_EVERY = 5
-#: the per-face algebra of a level's path energy and of the straight paths' that score pose starts
-#: (``h2_metric.path_energy(compute_dtype=)``; edges and sums stay in the objective's dtype): float32 is
-#: within 2e-7 of float64 in the energy and 2e-6 in its gradient on `human` paths, and 35 % faster
-#: (bench/README)
-ENERGY_DTYPE = torch.float32
-#: straight paths whose energies one call sums (``straight_energies``; the pose stage scores 32 and 7 codes):
-#: the per-face algebra's hundred-odd passes then run over K x steps meshes at once
-STRAIGHT_BATCH = 8
+def log_scale(l, limit):
+    """A level's log-scale change (tensor), bounded smoothly to +-limit (the objective and
+    ``delta_similarity`` share it)."""
+    return limit * torch.tanh(l / limit)
 
 
-def log_scale(l):
-    """A level's log-scale change (tensor), bounded smoothly to +-SCALE_LOG_LIMIT (the objective and
-    ``_delta_similarity`` share it)."""
-    return SCALE_LOG_LIMIT * torch.tanh(l / SCALE_LOG_LIMIT)
-
-
-def delta_similarity(params, center, units):
-    """Similarity x -> c + e^l R(w) (x - c) + tau of params (w, tau, l) / units (7,) numpy."""
+def delta_similarity(params, center, units, limit):
+    """Similarity x -> c + e^l R(w) (x - c) + tau of params (w, tau, l) / units (7,) numpy, l bounded to
+    +-limit."""
     p = np.asarray(params) * units
     r = axis_angle_rotation(p[:3])
-    s = float(torch.exp(log_scale(torch.tensor(float(p[6]), dtype=torch.float64))))
+    s = float(torch.exp(log_scale(torch.tensor(float(p[6]), dtype=torch.float64), limit)))
     return Similarity(r, s, center - s * r @ center + p[3:6])
 
 
@@ -205,16 +155,22 @@ def end_whitening(gram, template, faces, fields, weight, code):
 
 
 class RegistrationProblem:
-    """The constant parts of a registration (template tensors, scan, landmarks) and one level's solve."""
+    """The constant parts of a registration (template tensors, scan, landmarks, settings) and one level's
+    solve: basis, scan (M, 3), (G, 3), a RegistrationConfig, a progress Monitor; face_w (G,) or None;
+    marks as ``multiscale.check_landmarks`` gives them, or None."""
 
-    def __init__(self, basis, sv, sf, face_w, marks, landmark_weight, metric, backend, binning,
-                 refine_transform, dtype, device, monitor):
-        self.binning = binning
+    def __init__(self, basis, sv, sf, config=None, monitor=None, face_w=None, marks=None):
+        from ..progress import Monitor
+
+        self.config = config = RegistrationConfig.from_basis(basis) if config is None else config
+        self.monitor = monitor or Monitor("register")
+        dtype, device = config.dtype, config.device
         self.template, self.faces, self.fields = basis.tensors(dtype=dtype, device=device)
         area, self.center, _ = surface_moments(basis.template, basis.faces)
         self.center_t = torch.as_tensor(self.center, dtype=dtype, device=device)
         # preconditioning (see PathVariables): the path's interior is whitened by the latent
         # metric at the template, the end code by an estimate of the level's Hessian
+        metric = config.shape_metric(basis)
         self.gram = basis.template_metric(metric)
         self.whiten = whitening(self.gram)
         self.radius = math.sqrt(((basis.template - self.center) ** 2).sum(-1).mean())
@@ -223,22 +179,25 @@ class RegistrationProblem:
         self.scan_weights = None if face_w is None else torch.as_tensor(face_w, dtype=dtype, device=device)
         self.marks = marks
         if marks is not None:
-            self.pull = landmark_pull(marks, landmark_weight, area, dtype, device)
-        self.metric, self.backend = metric, backend
-        self.n_extra = 7 if refine_transform else 0
-        self.dtype, self.device, self.monitor = dtype, device, monitor
+            self.pull = landmark_pull(marks, config.landmark_weight, area, dtype, device)
+        self.metric, self.backend, self.binning = metric, config.backend, config.binning
+        self.n_extra = 7 if config.refines_transform else 0
+        self.dtype, self.device = dtype, device
         self.scale, self.n_fields = basis.scale, basis.n_fields
         self.template_np, self.faces_np, self.fields_np = basis.template, basis.faces, basis.fields
 
-    def realign(self, level, codes, transform, max_iter=POSE_ALIGN_ITER, energies=None):
+    def realign(self, level, codes, transform, max_iter=None, energies=None):
         """The alignment refined for each surface F(code) at ``level``'s sigma (binned binet varifold,
         rotation, translation and a bounded log-scale about the template's centre), starting from the
         translation that matches F(code)'s area centroid with the scan's (a raised arm moves the centroid
         by several cm): codes (K, P) -> [(Similarity, weight * Gamma + energy of the straight path
-        0 -> code)], Gamma on the coarse cells. max_iter 0 scores the centroid-matched starts alone;
-        energies: those straight paths' energies (``straight_energies``) when known, else computed."""
+        0 -> code)], Gamma on the coarse cells. max_iter (None: ``poses.align_iterations``) 0 scores the
+        centroid-matched starts alone; energies: those straight paths' energies (``straight_energies``)
+        when known, else computed."""
+        max_iter = self.config.poses.align_iterations if max_iter is None else max_iter
+        limit = self.config.solve.scale_log_limit
         sigma = level.sigma * self.scale
-        cell = PREALIGN_CELL * sigma
+        cell = self.config.prealignment.cell * sigma
         moved = transform.apply(self.scan)
         scan_center = surface_centroid(moved, self.scan_faces_np, self.scan_weights_np)[1]
         # one loss against the scan for every code: the scan's self term is summed once
@@ -255,14 +214,14 @@ class RegistrationProblem:
             x0 = np.zeros(7)
             x0[3:6] = scan_center - surface_centroid(verts, self.faces_np)[1]
             coarse = CoarseVarifold(scan, coarse_measure(verts - self.center, self.faces, None, cell), sigma)
-            fun = lambda p: coarse(torch.cat([p[:6], log_scale(p[6:])]), eye)  # noqa: E731
+            fun = lambda p: coarse(torch.cat([p[:6], log_scale(p[6:], limit)]), eye)  # noqa: E731
             if max_iter:
                 x, gamma, _ = minimize_lbfgs(fun, x0, max_iter=max_iter, gtol=1e-9, ftol=1e-10)
             else:
                 with torch.no_grad():
                     x, gamma = x0, float(fun(torch.from_numpy(x0)))
             # F(code) moved by S: x -> e^l R (x - c) + tau + c; the scan moves by the inverse instead
-            scale = math.exp(float(log_scale(torch.as_tensor(x[6]))))
+            scale = math.exp(float(log_scale(torch.as_tensor(x[6]), limit)))
             rot = axis_angle_rotation(x[:3])
             move = Similarity(rot, scale, x[3:6] + self.center - scale * rot @ self.center)
             out.append((move.inverse().compose(transform), level.weight * gamma + energy))
@@ -270,21 +229,23 @@ class RegistrationProblem:
 
     def straight_energies(self, level, codes):
         """Energies of the straight paths 0 -> code in ``level.steps`` steps: codes (K, P) -> [float] * K,
-        STRAIGHT_BATCH paths at a time (one path energy call instead of one a code)."""
+        ``solve.straight_batch`` paths at a time (one path energy call instead of one a code)."""
+        batch, energy_dtype = self.config.solve.straight_batch, self.config.solve.energy_dtype
         codes = torch.as_tensor(np.asarray(codes, dtype=np.float64), dtype=self.dtype, device=self.device)
         ramp = torch.linspace(0, 1, level.steps + 1, dtype=self.dtype, device=self.device)[:, None]
         out = []
         with torch.no_grad():
-            for s in range(0, codes.shape[0], STRAIGHT_BATCH):
-                paths = decode(self.template, self.fields, ramp * codes[s:s + STRAIGHT_BATCH, None, :])
-                out += h2_metric.path_energy(paths, self.faces, self.metric, compute_dtype=ENERGY_DTYPE).tolist()
+            for s in range(0, codes.shape[0], batch):
+                paths = decode(self.template, self.fields, ramp * codes[s:s + batch, None, :])
+                out += h2_metric.path_energy(paths, self.faces, self.metric, compute_dtype=energy_dtype).tolist()
         return out
 
     def screen_score(self, level, code, transform, energy):
         """weight * (Gamma + landmark term) + energy of a solved path at ``level``'s sigma and weight,
-        Gamma (kernel SCREEN_KERNEL) on a binning of both surfaces with cells of SCREEN_CELL x sigma.
+        Gamma (kernel ``screening.kernel``) on a binning of both surfaces with cells of ``screening.cell``
+        x sigma.
 
-        A level's objective bins with cells of BIN_CELL x sigma; its error (a difference of large
+        A level's objective bins with coarser cells; its error (a difference of large
         kernel sums) depends on how each alignment falls on the cells, enough to rank a wrong
         alignment first: finer cells make the objective comparable across alignments.
         code (P,), transform: the end of a ``solve_level`` result; energy: its path energy -> float.
@@ -294,8 +255,9 @@ class RegistrationProblem:
         code = torch.as_tensor(code, dtype=self.dtype, device=self.device)
         with torch.no_grad():
             final = decode(self.template, self.fields, code)
-            loss = BinnedVarifoldLoss(final, self.faces, target, self.scan_faces, sigma, SCREEN_KERNEL,
-                                      self.scan_weights, cell=SCREEN_CELL * sigma, backend=self.backend)
+            screening = self.config.screening
+            loss = BinnedVarifoldLoss(final, self.faces, target, self.scan_faces, sigma, screening.kernel,
+                                      self.scan_weights, cell=screening.cell * sigma, backend=self.backend)
             fit = loss(final, self.faces)
             if self.marks is not None:
                 fit = fit + self.landmark_term(final, self.landmark_points(transform))
@@ -318,12 +280,13 @@ class RegistrationProblem:
                                     self.scan_weights_np)
         return torch.as_tensor(faces, dtype=torch.long, device=self.device), turned
 
-    def level_loss(self, kernel, sigma, target, scan_faces, code, bin_cell=BIN_CELL, binned=None):
+    def level_loss(self, kernel, sigma, target, scan_faces, code, bin_cell, binned=None):
         """The varifold loss of one level against the scan (target (M, 3) in the template frame):
         binned (``BinnedVarifoldLoss`` about F(code), cells of bin_cell x sigma) as ``self.binning`` says
-        (when "auto", as the level's own ``binned`` says unless it is None), else truncated at FINE_TOL with
-        the scan summed over cells of SCAN_CELL (ORIENTED_SCAN_CELL for an oriented kernel) x sigma
-        -> (loss, binned)."""
+        (when "auto", as the level's own ``binned`` says unless it is None, then ``solve.bin_gain``'s
+        pair-count rule), else truncated at ``solve.fine_tol`` with the scan summed over cells of
+        ``solve.scan_cell`` (``oriented_scan_cell`` for an oriented kernel) x sigma -> (loss, binned)."""
+        settings = self.config.solve
         binning = binned if self.binning == "auto" and binned is not None else self.binning
         if binning:
             start = decode(self.template, self.fields, torch.as_tensor(code, dtype=self.dtype, device=self.device))
@@ -331,22 +294,11 @@ class RegistrationProblem:
                                       cell=bin_cell * sigma, backend=self.backend)
             n_s, n_t = self.faces.shape[0], scan_faces.shape[0]
             pairs = loss.n_groups * (loss.n_groups + loss.n_target)
-            if binning is True or pairs <= BIN_GAIN * n_s * (n_s + n_t):
+            if binning is True or pairs <= settings.bin_gain * n_s * (n_s + n_t):
                 return loss, True
-        weights, normals, rings = self.scan_weights, None, 0
-        if SCAN_NORMAL_RADIUS and not is_oriented(kernel):
-            verts, faces = target.detach().cpu().numpy(), scan_faces.cpu().numpy()
-            edge = np.linalg.norm(verts[faces] - verts[faces[:, [1, 2, 0]]], axis=2).mean()
-            rings = min(SCAN_NORMAL_RINGS, int(SCAN_NORMAL_RADIUS * sigma / edge))
-        if rings:
-            normals, projected = smoothed_normals(verts, faces, rings)
-            areas = face_geometry(verts, faces)[1]
-            share = torch.as_tensor(projected / np.maximum(areas, 1e-300), dtype=self.dtype, device=self.device)
-            weights = share if weights is None else weights * share
-            normals = torch.as_tensor(normals, dtype=self.dtype, device=self.device)
-        cell = ORIENTED_SCAN_CELL if is_oriented(kernel) else SCAN_CELL
-        return VarifoldLoss(target, scan_faces, sigma, kernel=kernel, backend=self.backend, target_weights=weights,
-                            cutoff=default_cutoff(sigma, FINE_TOL), target_normals=normals,
+        cell = settings.oriented_scan_cell if is_oriented(kernel) else settings.scan_cell
+        return VarifoldLoss(target, scan_faces, sigma, kernel=kernel, backend=self.backend,
+                            target_weights=self.scan_weights, cutoff=default_cutoff(sigma, settings.fine_tol),
                             target_cell=None if cell is None else cell * sigma), False
 
     def solve_level(self, level, path, transform, progress, message, kernel="binet", orient=False,
@@ -356,9 +308,11 @@ class RegistrationProblem:
         kernel: the varifold's (a name of ``bareesa.varifold.KERNELS``, or names joined by "+": the sum
         of their varifolds); orient: with an oriented kernel, first turn the scan's faces like the fit
         so far (``oriented_scan_faces``), else use them as given; bin_cell: the cells of a binned level,
-        in units of sigma (``level_loss``; None: the level's own ``bin_cell``, else BIN_CELL)."""
+        in units of sigma (``level_loss``; None: the level's own ``bin_cell``, else ``solve.bin_cell``)."""
         t0 = time.perf_counter()
-        bin_cell = next(c for c in (bin_cell, level.bin_cell, BIN_CELL) if c is not None)
+        settings = self.config.solve
+        limit = settings.scale_log_limit
+        bin_cell = next(c for c in (bin_cell, level.bin_cell, settings.bin_cell) if c is not None)
         self.monitor.check()
         dtype, device, p_dim, steps = self.dtype, self.device, self.n_fields, level.steps
         sigma = level.sigma * self.scale
@@ -379,12 +333,12 @@ class RegistrationProblem:
             x = x.to(dtype=dtype, device=device)
             alpha = variables.path(x[:steps * p_dim].reshape(steps, p_dim))
             meshes = decode(self.template, self.fields, alpha)
-            energy = h2_metric.path_energy(meshes, self.faces, self.metric, compute_dtype=ENERGY_DTYPE)
+            energy = h2_metric.path_energy(meshes, self.faces, self.metric, compute_dtype=settings.energy_dtype)
             final = meshes[-1]
             if self.n_extra:
                 p = x[steps * p_dim:] * units_t
                 rotation = axis_angle_rotation(p[:3])
-                final = (self.center_t + torch.exp(log_scale(p[6])) * (final - self.center_t) @ rotation.T
+                final = (self.center_t + torch.exp(log_scale(p[6], limit)) * (final - self.center_t) @ rotation.T
                          + p[3:6])
             gamma = sum(loss(final, self.faces) for loss in losses)
             fit = gamma
@@ -407,17 +361,18 @@ class RegistrationProblem:
             path = variables.path(torch.from_numpy(x[:steps * p_dim].reshape(steps, p_dim))).numpy()
             if not self.n_extra:
                 return path, transform
-            return path, delta_similarity(x[steps * p_dim:], self.center, units).inverse().compose(transform)
+            return path, delta_similarity(x[steps * p_dim:], self.center, units, limit).inverse().compose(transform)
 
         def result_so_far(x):
             path, moved = unpack(x)
             return {"code": path[-1], "transform": moved}
 
         x, value, nit = minimize_lbfgs(objective, x0, self.monitor, max_iter=level.max_iter,
-                                       progress=progress, message=message, ftol=LEVEL_FTOL,
-                                       plateau=(LEVEL_PLATEAU[0], level.plateau or LEVEL_PLATEAU[1]),
-                                       memory=LEVEL_MEMORY,
-                                       preview=(PREVIEW_EVERY, result_so_far) if self.monitor.wants_preview else None)
+                                       progress=progress, message=message, ftol=settings.ftol,
+                                       plateau=(settings.plateau_window, level.plateau or settings.plateau),
+                                       memory=settings.memory,
+                                       preview=((settings.preview_every, result_so_far) if self.monitor.wants_preview
+                                                else None))
         if x.tobytes() not in terms:  # the optimiser returns a point it evaluated: this is only a safeguard
             with torch.no_grad():
                 objective(torch.from_numpy(x))

@@ -16,17 +16,11 @@ from ..progress import Monitor
 from ..threads import with_one_blas_thread
 from ..transforms import Similarity
 from ..varifold import VarifoldLoss, is_oriented
-from .multiscale import check_face_weights, check_landmarks, level_kernels, register
+from .checks import check_face_weights, check_landmarks, level_kernels
+from .config import RegistrationConfig
+from .multiscale import SETTING_ALIASES, register
 from .prealign import surface_moments
-from .problem import ENERGY_DTYPE, LEVEL_FTOL, end_whitening, landmark_pull, orient_like
-
-#: dtype of the joint solve's start, the geodesic between the two registrations' codes (with
-#: ``geodesics.FRAMES_PLATEAU``: within 0.2 mm of float64's on human bodies at half the time)
-START_DTYPE = torch.float32
-#: the joint solve stops when its objective fell by less than MATCH_PLATEAU[1] (relative) over the last
-#: MATCH_PLATEAU[0] iterations: the path energy is ~1e-3 of the objective (the rest is weight x varifold),
-#: so a level's plateau (1e-3) would stop before the path has moved
-MATCH_PLATEAU = (5, 1e-4)
+from .problem import end_whitening, landmark_pull, orient_like
 
 
 @dataclass
@@ -55,43 +49,45 @@ class Matching:
 
 
 @with_one_blas_thread
-def symmetric_match(basis, scan0, scan1, steps=10, schedule=None, weights=None, prealign=True, kernel="auto",
-                    face_weights=(None, None), landmarks=(None, None), landmark_weight=1.0, callback=None,
-                    cancel=None, dtype=torch.float64, device="cpu"):
+def symmetric_match(basis, scan0, scan1, steps=10, config=None, *, weights=None, face_weights=(None, None),
+                    landmarks=(None, None), callback=None, cancel=None, **settings):
     """Codes of two raw scans and the geodesic between them in one optimisation (paper eq. sym. match).
 
     scan0, scan1: (verts (M, 3), faces (G, 3)). Each scan is first registered (warm start,
     its own pre-alignment unless prealign is False); then weight * [Gamma(F(alpha_0), q0) +
     Gamma(F(alpha_1), q1)] + E(alpha) is minimised jointly over the whole path at the finest level
-    of the schedule, with the finest kernel each scan's registration used (``register``'s ``kernel``;
-    an oriented one on the scan's faces turned like its registration). weights: the H2 weights of E
-    and of the registrations (default the basis': ``weights`` for E, ``shape_metric`` for the
-    registrations); face_weights, landmarks: one per scan, as ``register`` takes them (an ignored face
-    stays ignored and a landmark keeps pulling in the joint solve too); dtype, device: of the objective.
+    of the schedule, with the finest kernel each scan's registration used (an oriented one on the scan's
+    faces turned like its registration). config: a ``RegistrationConfig`` (None: the basis'), keyword
+    ``settings`` override it as ``register``'s do; weights: the H2 weights of E and of the registrations
+    (default the basis': ``weights`` for E, ``shape_metric`` for the registrations); face_weights,
+    landmarks: one per scan, as ``register`` takes them (an ignored face stays ignored and a landmark
+    keeps pulling in the joint solve too).
     """
     start = time.perf_counter()
     if steps < 2:
         raise InputError(f"a path needs at least 2 time points, got {steps}")
     monitor = Monitor("symmetric matching", callback, cancel)
-    levels = tuple(basis.schedule if schedule is None else schedule)
-    given = weights  # the ends' registrations use the basis' shape metric unless weights are given
+    config = RegistrationConfig.from_basis(basis) if config is None else config
+    config = config.with_overrides({SETTING_ALIASES.get(k, k): v for k, v in settings.items()})
+    if config.schedule is None:
+        config = config.with_overrides(schedule=basis.schedule)
+    if weights is not None:  # the ends' registrations use the basis' shape metric unless weights are given
+        config = config.with_overrides(metric=weights)
     weights = H2Weights.parse(basis.weights if weights is None else weights)
-    level_kernels(kernel, len(levels))  # checked before any solve
+    level_kernels(config.kernel, len(config.schedule))  # checked before any solve
     face_weights, landmarks = tuple(face_weights), tuple(landmarks)
     if len(face_weights) != 2 or len(landmarks) != 2:
         raise InputError("face_weights and landmarks: one entry (or None) per scan, two in all")
     for scan, w, marks in zip((scan0, scan1), face_weights, landmarks):  # both checked before any solve
         check_face_weights(w, len(scan[1]))
         check_landmarks(marks, basis.template.shape[0])
-    options = dict(schedule=levels, prealign=prealign, metric=given, kernel=kernel, landmark_weight=landmark_weight,
-                   cancel=cancel, dtype=dtype, device=device)
-    r0 = register(basis, *scan0, scan_face_weights=face_weights[0], landmarks=landmarks[0],
-                  callback=monitor.scaled(0.0, 0.4), **options)
-    r1 = register(basis, *scan1, scan_face_weights=face_weights[1], landmarks=landmarks[1],
-                  callback=monitor.scaled(0.4, 0.8), **options)
-    path, energy, gammas = match_registered(basis, (scan0, scan1), (r0, r1), steps, levels[-1], weights, monitor,
-                                            dtype, device, face_weights, landmarks, landmark_weight)
-    monitor.report(1.0, "symmetric matching done", energy + levels[-1].weight * sum(gammas))
+    r0 = register(basis, *scan0, config, scan_face_weights=face_weights[0], landmarks=landmarks[0],
+                  callback=monitor.scaled(0.0, 0.4), cancel=cancel)
+    r1 = register(basis, *scan1, config, scan_face_weights=face_weights[1], landmarks=landmarks[1],
+                  callback=monitor.scaled(0.4, 0.8), cancel=cancel)
+    path, energy, gammas = match_registered(basis, (scan0, scan1), (r0, r1), steps, config.schedule[-1], weights,
+                                            monitor, config, face_weights, landmarks)
+    monitor.report(1.0, "symmetric matching done", energy + config.schedule[-1].weight * sum(gammas))
     return Matching(path=path, energy=energy, distance=float(np.sqrt(max(energy, 0.0))),
                     transforms=(r0.transform, r1.transform), varifold=gammas, seconds=time.perf_counter() - start)
 
@@ -124,25 +120,28 @@ def _end_terms(basis, scan, reg, level, gram, face_weights, landmarks, landmark_
     return gamma, pull, end_whitening(gram, basis.template, basis.faces, basis.fields, level.weight, reg.code)
 
 
-def match_registered(basis, scans, regs, steps, level, weights, monitor, dtype=torch.float64, device="cpu",
-                     face_weights=(None, None), landmarks=(None, None), landmark_weight=1.0):
+def match_registered(basis, scans, regs, steps, level, weights, monitor, config=None, face_weights=(None, None),
+                     landmarks=(None, None)):
     """The joint solve of symmetric matching from two registrations: minimise level.weight * [Gamma(F(alpha_0),
     q0) + Gamma(F(alpha_1), q1)] + E(alpha) over the path (steps, P), both ends free, each scan fixed in the
     template frame by its registration's similarity (Gamma with each scan's face weights and landmark term,
-    as its registration had them). -> (path (steps, P), energy, (Gamma_0, Gamma_1)).
+    as its registration had them), settings from ``config`` (dtype, device, landmark_weight, ``matching``;
+    None: the defaults). -> (path (steps, P), energy, (Gamma_0, Gamma_1)).
 
     Preconditioned like a registration level (``problem.PathVariables``): each end code whitened by its
     level Hessian estimate, the interior's deviation from the straight line by the time whitening and the
     metric at the mean of the registered codes (``geodesics.midpoint_metric``), so that L-BFGS meets a
-    nearly isotropic problem; stopped at LEVEL_FTOL or MATCH_PLATEAU. Starts from the geodesic between the
-    registered codes (in START_DTYPE)."""
+    nearly isotropic problem; stopped at ``solve.ftol`` or ``matching``'s plateau. Starts from the geodesic
+    between the registered codes (in ``matching.start_dtype``)."""
+    config = RegistrationConfig() if config is None else config
+    dtype, device, landmark_weight, settings = config.dtype, config.device, config.landmark_weight, config.matching
     template, faces, fields = basis.tensors(dtype=dtype, device=device)
     p = fields.shape[0]
     gram = basis.template_metric(weights)
     ends = [_end_terms(basis, scan, reg, level, gram, w, marks, landmark_weight, dtype, device)
             for scan, reg, w, marks in zip(scans, regs, face_weights, landmarks)]
     codes = [reg.code for reg in regs]
-    start_tensors = basis.tensors(dtype=START_DTYPE, device=device)
+    start_tensors = basis.tensors(dtype=settings.start_dtype, device=device)
     middle = midpoint_metric(*start_tensors, *codes, weights)
     b_path = whitening(middle)
     r_inv = interior_whitening(steps - 2)
@@ -159,7 +158,7 @@ def match_registered(basis, scans, regs, steps, level, weights, monitor, dtype=t
 
     def objective(x):
         meshes = decode(template, fields, path_of(x))
-        energy = path_energy(meshes, faces, weights, compute_dtype=ENERGY_DTYPE)
+        energy = path_energy(meshes, faces, weights, compute_dtype=config.solve.energy_dtype)
         ends_mesh = meshes[[0, -1]]
         gammas = [gamma(mesh, faces) for (gamma, _, _), mesh in zip(ends, ends_mesh)]
         pulls = [pull(mesh) for (_, pull, _), mesh in zip(ends, ends_mesh)]
@@ -174,7 +173,8 @@ def match_registered(basis, scans, regs, steps, level, weights, monitor, dtype=t
     x0 = np.concatenate([np.linalg.solve(ends[0][2].T, codes[0]), np.linalg.solve(ends[1][2].T, codes[1]),
                          inner.ravel()])
     x, _, _ = minimize_lbfgs(objective, x0, monitor, max_iter=level.max_iter, progress=(0.8, 1.0),
-                             message="symmetric matching", ftol=LEVEL_FTOL, plateau=MATCH_PLATEAU)
+                             message="symmetric matching", ftol=config.solve.ftol,
+                             plateau=(settings.plateau_window, settings.plateau))
     with torch.no_grad():
         path = path_of(torch.from_numpy(x)).double().cpu().numpy()
         objective(torch.from_numpy(x))

@@ -124,13 +124,11 @@ class VarifoldLoss(_FixedTarget):
     many points as the target has faces (a scan much finer than sigma: otherwise the small
     saving is not worth the approximation and its dependence on the cell grid); the source
     stays exact. Not for a target that
-    requires grad. ``target_points`` is the number of target points used. ``target_normals`` (F, 3)
-    unit normals replace the target faces' own (e.g. ``mesh.smoothed_normals``, whose projected areas
-    go in as ``target_weights`` relative to the faces' areas).
+    requires grad. ``target_points`` is the number of target points used.
     """
 
     def __init__(self, target_verts, target_faces, sigma, kernel="binet", backend="auto",
-                 target_weights=None, cutoff=None, target_cell=None, target_normals=None):
+                 target_weights=None, cutoff=None, target_cell=None):
         self.sigma = check_options(sigma, kernel, backend, cutoff)
         if target_cell is not None and not (float(target_cell) > 0 and math.isfinite(float(target_cell))):
             raise InputError(f"target_cell must be a positive finite length or None, got {target_cell}")
@@ -144,14 +142,7 @@ class VarifoldLoss(_FixedTarget):
         self.kernel, self.backend, self.cutoff = kernel, backend, cutoff
         self._target_mesh = (target_verts, target_faces.long(), target_weights)
         measure = varifold_measure(*self._target_mesh)
-        if target_normals is not None:
-            if not torch.is_tensor(target_normals) or target_normals.shape != target_faces.shape:
-                raise InputError(f"target_normals must be a tensor of shape ({target_faces.shape[0]}, 3)")
-            measure = (measure[0], target_normals.to(target_verts), measure[2])
-            self._target_mesh = None
         requires_grad = any(t.requires_grad for t in measure)
-        if target_normals is not None and requires_grad:
-            raise InputError("target_normals are for a fixed target, which then cannot require grad")
         if target_cell is not None:
             if requires_grad:
                 raise InputError("target_cell bins the target, which then cannot require grad")
