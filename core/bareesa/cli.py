@@ -18,6 +18,7 @@ import torch
 from . import __version__
 from .basis_building import build_basis
 from .basis_io import DEFAULT_BASIS, load_basis, save_basis
+from .cli_inputs import load_input, load_path, parse_components, parse_sequences, registration_overrides
 from .errors import BareEsaError, InputError
 from .evaluation import mesh_metrics, vertex_error
 from .geodesics import decode_path
@@ -27,11 +28,10 @@ from .masks import read_face_weights
 from .mesh import load_mesh, save_mesh, validate_mesh
 from .progress import tqdm_callback
 from .registration import prepare_basis
-from .registration.config import parse_settings
 from .scan_simulator import add_simulate_scan_arguments, apply_similarity, simulate_scan, simulate_scan_cli
 from .statistics import fit_training_distribution, pose_prototypes, sample_velocities
-from .workflows import (KnownCode, Options, Scan, TemplateMesh, check_device, code_of, extrapolate, geodesic_between,
-                        mesh_input, path_between, random_bodies, stored_distribution, transfer)
+from .workflows import (KnownCode, Options, Scan, check_device, code_of, extrapolate, geodesic_between, path_between,
+                        random_bodies, stored_distribution, transfer)
 
 
 def _options(args, **kwargs):
@@ -52,25 +52,6 @@ def _add_settings(p):
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
                    help="one registration setting, after --config's (repeatable): e.g. --set poses.finalists=3 "
                         "--set retry=false")
-
-
-def registration_overrides(args):
-    """The registration settings of --config FILE and --set KEY=VALUE (in that order): -> dict (InputError on a
-    missing file, bad JSON or a malformed --set; unknown keys are refused when the configuration is built)."""
-    out = {}
-    if getattr(args, "config", None) is not None:
-        try:
-            given = json.loads(Path(args.config).read_text())
-        except OSError as err:
-            raise InputError(f"--config {args.config}: cannot read it ({err.strerror or err})") from None
-        except ValueError as err:
-            raise InputError(f"--config {args.config}: not JSON ({err})") from None
-        if not isinstance(given, dict):
-            raise InputError(f"--config {args.config}: expected a JSON object of settings")
-        out.update(given)
-    for item in getattr(args, "settings", None) or []:
-        out.update(parse_settings(item))
-    return out
 
 
 def _print(result, as_json, title=None):
@@ -96,23 +77,6 @@ def cmd_metrics(args):
     _print({k: float(v) for k, v in result.items()}, args.json, f"{args.a}  vs  {args.b}")
 
 
-def load_path(paths):
-    """Load same-topology meshes as a path: -> verts (T, N, 3) float64 array, faces (F, 3)."""
-    frames, faces = [], None
-    for p in paths:
-        v, f = load_mesh(p)
-        validate_mesh(v, f, name=str(p))
-        if faces is None:
-            faces, first = f, p
-        elif v.shape[0] != frames[0].shape[0]:
-            raise InputError(f"{p} has {v.shape[0]} vertices but {first} has {frames[0].shape[0]}: "
-                             "a path needs meshes in one topology (register scans first)")
-        elif f.shape != faces.shape or not np.array_equal(f, faces):
-            raise InputError(f"{p} has different faces from {first}: a path needs meshes in one topology")
-        frames.append(v)
-    return np.stack(frames), faces
-
-
 def cmd_path_energy(args):
     """H2 path energy of the path through the given same-topology meshes."""
     if len(args.frames) < 2:
@@ -129,41 +93,12 @@ def cmd_path_energy(args):
                 "metric": ",".join(f"{w:g}" for w in weights.as_tuple())}, False, "H2 path energy")
 
 
-def _parse_sequences(specs):
-    """['pose:a.ply,b.ply', 'pose:DIR', ...] -> {group: [list of paths]} (several sequences per group allowed);
-    a single DIR (or summary.json/.csv) is a register-batch output: its registered meshes in order."""
-    from .batch import registered_meshes
-
-    groups = {}
-    for spec in specs:
-        group, sep, files = spec.partition(":")
-        paths = [Path(p) for p in files.split(",") if p]
-        if len(paths) == 1 and (paths[0].is_dir() or paths[0].name.startswith("summary.")):
-            paths = registered_meshes(paths[0])
-        if not sep or not group or len(paths) < 2:
-            raise InputError(f"--sequence '{spec}' must look like GROUP:F1,F2[,...] or GROUP:BATCH_DIR with at "
-                             "least two frames")
-        groups.setdefault(group, []).append(paths)
-    return groups
-
-
-def _parse_components(specs, groups):
-    out = {}
-    for spec in specs or []:
-        group, sep, k = spec.partition("=")
-        if not sep or group not in groups or not k.isdigit() or int(k) < 1:
-            raise InputError(f"--components '{spec}' must look like GROUP=K with K >= 1 and GROUP one of "
-                             f"{', '.join(groups)}")
-        out[group] = int(k)
-    return out
-
-
 def cmd_build_basis(args):
     """PCA basis from registered 4D sequences (differences of consecutive frames per group)."""
     template, faces = load_mesh(args.template)
     validate_mesh(template, faces, name=str(args.template))
-    groups = _parse_sequences(args.sequence)
-    components = _parse_components(args.components, groups)
+    groups = parse_sequences(args.sequence)
+    components = parse_components(args.components, groups)
     sequences = {}
     for group, seqs in groups.items():
         sequences[group] = []
@@ -194,30 +129,13 @@ def cmd_build_basis(args):
     _print(rows, False, f"wrote {args.output} ({basis.n_fields} fields)")
 
 
-def _load_input(basis, path, landmarks=None, ignore=None, options=("--landmarks", "--ignore")):
-    """A mesh file as a workflow input (validated): a TemplateMesh in the basis' template topology, else a Scan
-    with the landmarks and ignore mask of the given files (``landmarks``, ``masks``; options: their flags, for
-    the message when the mesh is not a raw scan)."""
-    v, f = load_mesh(path)
-    validate_mesh(v, f, name=str(path))
-    found = mesh_input(basis, v, f)
-    given = [flag for flag, file in zip(options, (landmarks, ignore)) if file is not None]
-    if not given:
-        return found
-    if isinstance(found, TemplateMesh):
-        raise InputError(f"{path} is in the basis' template topology (its code is a projection, not a registration): "
-                         f"{' and '.join(given)} {'apply' if len(given) > 1 else 'applies'} to raw scans only")
-    return Scan(v, f, face_weights=None if ignore is None else read_face_weights(ignore, f, len(v)),
-                landmarks=None if landmarks is None else read_scan_landmarks(landmarks, basis))
-
-
 def _basis_and_pair(args, min_steps=None):
     """The verbs on two meshes A, B: check --steps, load the basis and both inputs (raw scans with their
     --landmarks-a/-b, --ignore-a/-b) -> (basis, a, b)."""
     if min_steps is not None and args.steps < min_steps:
         raise InputError(f"--steps must be at least {min_steps}, got {args.steps}")
     basis = load_basis(args.basis)
-    return basis, *(_load_input(basis, getattr(args, end), getattr(args, f"landmarks_{end}"),
+    return basis, *(load_input(basis, getattr(args, end), getattr(args, f"landmarks_{end}"),
                                 getattr(args, f"ignore_{end}"), (f"--landmarks-{end}", f"--ignore-{end}"))
                     for end in ("a", "b"))
 
@@ -291,8 +209,8 @@ def cmd_transfer(args):
     """Put the motion of the given frames on another identity (swap the identity group)."""
     options = _options(args)
     basis = load_basis(args.basis)
-    frames = [_load_input(basis, p) for p in args.frames]
-    out = transfer(basis, frames, _load_input(basis, args.identity), args.group, options).motion
+    frames = [load_input(basis, p) for p in args.frames]
+    out = transfer(basis, frames, load_input(basis, args.identity), args.group, options).motion
     _write_frames(args.output, basis, out)
     _print({"frames": len(out), "output": str(args.output)}, args.json, "motion transfer")
 
@@ -303,7 +221,7 @@ def cmd_sample(args):
         raise InputError(f"-n must be at least 1, got {args.n}")
     options = _options(args)
     basis = load_basis(args.basis)
-    fit = [_load_input(basis, p) for p in args.fit] if args.fit else None
+    fit = [load_input(basis, p) for p in args.fit] if args.fit else None
     if fit is None and not stored_distribution(basis):
         raise InputError(f"basis '{basis.name}' carries no fitted distribution: give --fit FILES")
     bodies = random_bodies(basis, args.n, args.seed, options, fit=fit, components=args.components)
