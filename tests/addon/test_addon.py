@@ -34,7 +34,7 @@ def test_manifest_declares_extension_id_and_minimum_blender():
     import tomllib
     from pathlib import Path
 
-    manifest = tomllib.loads((Path(__file__).resolve().parents[1] / "blender_manifest.toml").read_text())
+    manifest = tomllib.loads((Path(__file__).resolve().parents[2] / "blender_manifest.toml").read_text())
     assert manifest["schema_version"] == "1.0.0"
     assert manifest["id"] == "bareesa"
     assert tuple(int(x) for x in manifest["blender_version_min"].split(".")) >= (4, 2, 0)

@@ -8,7 +8,7 @@ import struct
 import numpy as np
 import pytest
 
-from tests.addon_support import bpy, tiny  # noqa: F401
+from tests.addon.support import bpy
 
 
 def png_size(path):

@@ -1,9 +1,17 @@
-"""Fixtures shared by the headless Blender tests (tests/test_addon_*.py).
+"""Helpers shared by the headless Blender tests (tests/addon/): the tiny test basis, scene helpers and the
+stand-ins that drive a modal solve operator. Plain functions; the fixtures (``tiny``, ``scene``) are in
+tests/addon/conftest.py.
 
 A tiny basis (42-vertex smooth sphere, groups ``pose`` and ``shape`` of two
 fields each, a fitted distribution, a fast two-level schedule) is built once
-and saved to a temporary .npz, so the tests never need the bundled bases.
+(the ``tiny`` fixture) and saved to a temporary .npz, so the tests never need the bundled bases.
+
+Importing this module skips the importing test module where bpy is absent.
 """
+
+import threading
+import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -12,7 +20,6 @@ bpy = pytest.importorskip("bpy")
 
 from bareesa import synthetic  # noqa: E402
 from bareesa.latent import Basis, Level  # noqa: E402
-from bareesa.basis_io import save_basis  # noqa: E402
 from bareesa.statistics import fit_distribution  # noqa: E402
 
 TINY_SCHEDULE = (Level(0.25, 1e3, 1, 15), Level(0.15, 1e5, 1, 15))
@@ -27,34 +34,6 @@ def tiny_basis():
     basis = Basis(template=b.template, faces=b.faces, fields=b.fields, groups=groups, weights=b.weights,
                   schedule=TINY_SCHEDULE, scale=b.scale, units="", name="tiny", extras=extras)
     return basis, surface
-
-
-@pytest.fixture(scope="session")
-def tiny(tmp_path_factory):
-    """(Basis, path of its .npz, surface map)."""
-    basis, surface = tiny_basis()
-    path = tmp_path_factory.mktemp("bases") / "tiny.npz"
-    save_basis(path, basis)
-    return basis, path, surface
-
-
-@pytest.fixture
-def scene(tiny, tmp_path, monkeypatch):
-    """An empty scene with the add-on registered, the tiny basis chosen and fast settings."""
-    import bareesa_addon
-
-    monkeypatch.setenv("BAREESA_USER_BASES", str(tmp_path / "user_bases"))
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    bareesa_addon.register()
-    s = bpy.context.scene.bareesa
-    s.basis = str(tiny[1])
-    s.schedule = "FAST"
-    s.steps = 4
-    s.use_frame_range = True  # the tests set the panel's own range (the default follows the scene's)
-    s.frame_start, s.frame_end = 1, 6
-    s.shoot_steps = 2
-    yield bpy.context.scene
-    bareesa_addon.unregister()
 
 
 def add_mesh(name, verts, faces, location=(0.0, 0.0, 0.0), quads=None):
@@ -108,3 +87,76 @@ def code_surface(surface, alpha, subdivisions=1, seed=3):
     """F(alpha) sampled on another triangulation of the sphere: -> verts, faces (a raw 'scan')."""
     u, faces = synthetic.resampled_sphere(subdivisions, seed=seed)
     return surface(u, np.asarray(alpha, dtype=np.float64)), faces
+
+
+# --------------------------------------------------------------------------- a modal solve, driven by hand
+
+
+class FakeWindowManager:
+    def __init__(self):
+        self.progress, self.timers, self.handlers = [], 0, []
+
+    def event_timer_add(self, step, window=None):
+        self.timers += 1
+        return object()
+
+    def event_timer_remove(self, timer):
+        self.timers -= 1
+
+    def modal_handler_add(self, op):
+        self.handlers.append(op)
+
+    def progress_begin(self, lo, hi):
+        self.progress.append("begin")
+
+    def progress_update(self, value):
+        self.progress.append(value)
+
+    def progress_end(self):
+        self.progress.append("end")
+
+
+class FakeWorkspace:
+    def __init__(self):
+        self.status = []
+
+    def status_text_set(self, text):
+        self.status.append(text)
+
+
+def fake_context():
+    return SimpleNamespace(window_manager=FakeWindowManager(), window=object(), workspace=FakeWorkspace(),
+                           screen=None)
+
+
+def make_operator(solve, applied):
+    from bareesa_addon.jobs import SolveOperator, Task
+
+    class Op(SolveOperator):
+        def __init__(self):
+            self.reports = []
+
+        def report(self, kind, message):
+            self.reports.append((set(kind), message))
+
+        def prepare(self, context):
+            def apply(context, result):
+                applied.append((result, threading.current_thread() is threading.main_thread()))
+                return f"applied {result}"
+
+            return Task("test solve", solve, apply)
+
+    return Op()
+
+
+def drive(op, context, events=(), timeout=60.0):
+    """Send TIMER events (and the given ones first) until the operator finishes: -> its return value."""
+    for ev in events:
+        result = op.modal(context, SimpleNamespace(type=ev, value="PRESS"))
+    start = time.monotonic()
+    while time.monotonic() - start < timeout:
+        result = op.modal(context, SimpleNamespace(type="TIMER", value="NOTHING"))
+        if result != {"RUNNING_MODAL"}:
+            return result
+        time.sleep(0.02)
+    raise AssertionError("the job did not finish")

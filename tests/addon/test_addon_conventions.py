@@ -4,8 +4,7 @@ training units, no silent reductions, Blender's panel layout, polls with reasons
 import numpy as np
 import pytest
 
-from tests.addon_support import (add_mesh, bpy, code_surface, scene, select, snapshot,  # noqa: F401
-                                 tiny)
+from tests.addon.support import add_mesh, bpy, code_surface, select, snapshot
 
 NAMES = ["pose_000", "pose_001", "shape_000", "shape_001"]
 A = np.array([0.2, -0.3, 0.4, 0.1])
@@ -331,7 +330,7 @@ def test_a_background_result_lands_as_one_undo_step(monkeypatch):
     from types import SimpleNamespace
 
     from bareesa_addon import jobs
-    from tests.test_addon_jobs import drive, fake_context, make_operator
+    from tests.addon.support import drive, fake_context, make_operator
 
     pushed = []
     monkeypatch.setattr(jobs, "push_undo", pushed.append)

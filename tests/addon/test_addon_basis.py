@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from tests.addon_support import bpy, key_values, mesh_verts, scene, select, snapshot, tiny  # noqa: F401
+from tests.addon.support import bpy, mesh_verts, snapshot
 
 
 NAMES = ["pose_000", "pose_001", "shape_000", "shape_001"]
@@ -19,7 +19,7 @@ def test_load_template_adds_basis_and_one_shape_key_per_field(scene, tiny):
     assert np.allclose(mesh_verts(obj), basis.template)
     co = np.empty(len(obj.data.vertices) * 3)
     blocks["shape_001"].data.foreach_get("co", co)
-    scale = obj["bareesa_key_scale"][3]  # one training std of the field (tests/test_addon_conventions.py)
+    scale = obj["bareesa_key_scale"][3]  # one training std of the field (tests/addon/test_addon_conventions.py)
     assert np.allclose(co.reshape(-1, 3), basis.template + scale * basis.fields[3])
     assert obj["bareesa_basis"] == str(path.resolve())
     assert len(obj.data.polygons) == len(basis.faces)
@@ -115,7 +115,7 @@ def test_codes_beyond_blender_slider_range_use_a_key_scale_and_still_decode(scen
 
 def test_quads_are_triangulated_by_mesh_conversion(scene):
     from bareesa_addon import convert
-    from tests.addon_support import add_mesh
+    from tests.addon.support import add_mesh
 
     verts = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)]
     obj = add_mesh("quad", verts, None, quads=[(0, 1, 2, 3)])
@@ -196,7 +196,7 @@ def test_template_uvs_of_a_basis_become_the_uv_map_of_its_objects(scene, tiny, t
 def test_named_parts_of_a_basis_become_vertex_groups_of_registered_objects(scene, tiny, tmp_path):
     from bareesa.basis_io import load_basis, save_basis
 
-    from tests.addon_support import add_mesh, code_surface, select
+    from tests.addon.support import add_mesh, code_surface, select
 
     basis = load_basis(tiny[1])
     n = len(basis.template)

@@ -5,8 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from tests.addon_support import (add_mesh, bpy, code_surface, key_values, scene, select, snapshot,  # noqa: F401
-                                 tiny)
+from tests.addon.support import add_mesh, bpy, code_surface, key_values, select, snapshot
 
 from mathutils import Matrix  # noqa: E402 (after bpy)
 

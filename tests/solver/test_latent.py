@@ -6,15 +6,7 @@ import torch
 
 from bareesa import basis_building, basis_io, h2_metric, latent, statistics, synthetic
 from bareesa.errors import InputError
-
-
-def small_basis(p=4, subdivisions=2, seed=0):
-    """A template blob and p smooth fields (functions of position)."""
-    v, f = synthetic.blob_mesh(subdivisions, seed=seed)
-    rng = np.random.default_rng(seed)
-    fields = np.stack([0.2 * np.sin(v @ rng.normal(size=(3, 3))) for _ in range(p)])
-    return latent.Basis(template=v, faces=f, fields=fields, groups={"pose": (0, p - 1), "shape": (p - 1, p)},
-                        weights="face", scale=2.0, name="small")
+from tests.solver.support import small_basis
 
 
 def test_decoder_matches_direct_sum():

@@ -11,77 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from tests.addon_support import bpy, tiny  # noqa: F401
-
-
-class FakeWindowManager:
-    def __init__(self):
-        self.progress, self.timers, self.handlers = [], 0, []
-
-    def event_timer_add(self, step, window=None):
-        self.timers += 1
-        return object()
-
-    def event_timer_remove(self, timer):
-        self.timers -= 1
-
-    def modal_handler_add(self, op):
-        self.handlers.append(op)
-
-    def progress_begin(self, lo, hi):
-        self.progress.append("begin")
-
-    def progress_update(self, value):
-        self.progress.append(value)
-
-    def progress_end(self):
-        self.progress.append("end")
-
-
-class FakeWorkspace:
-    def __init__(self):
-        self.status = []
-
-    def status_text_set(self, text):
-        self.status.append(text)
-
-
-def fake_context():
-    return SimpleNamespace(window_manager=FakeWindowManager(), window=object(), workspace=FakeWorkspace(),
-                           screen=None)
-
-
-def make_operator(solve, applied):
-    from bareesa_addon.jobs import SolveOperator, Task
-
-    class Op(SolveOperator):
-        def __init__(self):
-            self.reports = []
-
-        def report(self, kind, message):
-            self.reports.append((set(kind), message))
-
-        def prepare(self, context):
-            def apply(context, result):
-                applied.append((result, threading.current_thread() is threading.main_thread()))
-                return f"applied {result}"
-
-            return Task("test solve", solve, apply)
-
-    return Op()
-
-
-def drive(op, context, events=(), timeout=60.0):
-    """Send TIMER events (and the given ones first) until the operator finishes: -> its return value."""
-    for ev in events:
-        result = op.modal(context, SimpleNamespace(type=ev, value="PRESS"))
-    start = time.monotonic()
-    while time.monotonic() - start < timeout:
-        result = op.modal(context, SimpleNamespace(type="TIMER", value="NOTHING"))
-        if result != {"RUNNING_MODAL"}:
-            return result
-        time.sleep(0.02)
-    raise AssertionError("the job did not finish")
+from tests.addon.support import bpy, drive, fake_context, make_operator
 
 
 @pytest.fixture

@@ -12,7 +12,7 @@ import pytest
 
 pytest.importorskip("bpy")
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 INSTALL_SCRIPT = textwrap.dedent("""
     import json, sys
@@ -73,7 +73,7 @@ def test_zip_installs_with_blender_extension_machinery_and_runs_an_operator(tmp_
 @pytest.fixture
 def tiny_basis_file(tmp_path):
     from bareesa.basis_io import save_basis
-    from tests.addon_support import tiny_basis
+    from tests.addon.support import tiny_basis
 
     path = tmp_path / "tiny.npz"
     save_basis(path, tiny_basis()[0])

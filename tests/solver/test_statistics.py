@@ -4,7 +4,7 @@ import torch
 
 from bareesa import basis_building, h2_metric, latent, shooting, statistics, synthetic
 from bareesa.errors import InputError
-from tests.test_latent import small_basis
+from tests.solver.support import small_basis
 
 
 def test_motion_transfer_swaps_identity_and_keeps_pose():

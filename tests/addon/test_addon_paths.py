@@ -5,8 +5,7 @@ import csv
 import numpy as np
 import pytest
 
-from tests.addon_support import (add_mesh, bpy, code_surface, key_values, scene, select, snapshot,  # noqa: F401
-                                 tiny)
+from tests.addon.support import add_mesh, bpy, code_surface, key_values, select, snapshot
 
 NAMES = ["pose_000", "pose_001", "shape_000", "shape_001"]
 A = np.array([0.2, -0.3, 0.4, 0.1])

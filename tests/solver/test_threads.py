@@ -11,7 +11,7 @@ from bareesa.errors import SolveCancelled
 from bareesa.optimize import minimize_lbfgs
 from bareesa.progress import CancelToken
 from bareesa.threads import one_blas_thread
-from tests.test_latent import small_basis
+from tests.solver.support import small_basis
 
 
 def blas_threads():

@@ -7,7 +7,7 @@ import torch
 from bareesa import basis_io, geodesics, h2_metric, latent, registration, synthetic
 from bareesa.errors import InputError, SolveCancelled
 from bareesa.progress import CancelToken, Monitor
-from tests.test_latent import small_basis
+from tests.solver.support import limb_basis, small_basis
 
 
 def test_geodesic_has_lower_energy_than_straight_line_and_fixed_endpoints():
@@ -66,7 +66,7 @@ def test_keyframes_are_paced_by_shape_change_where_the_metric_barely_sees_a_moti
     """A lift (a translation: only the a0 term sees it), then a bend of the limb: paced by the metric the
     frames race through the lift and crawl through the bend; paced by shape (the default) every frame
     moves the vertices by the same mean distance."""
-    b, _ = _limb_basis()
+    b, _ = limb_basis()
     t, f, h = b.tensors()
     path = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [1.5, 0.0, 1.0]])
     metric = geodesics.resample_path(t, f, h, path, b.weights, 13, pace="metric")
@@ -105,20 +105,8 @@ def test_bad_codes_raise_input_error():
         geodesics.geodesic(t, f, h, np.full(4, np.nan), np.ones(4), b.weights)
 
 
-def _limb_basis():
-    """A blob whose fields bend a 'limb' (the vertices with x > 0.5, under a third), push it
-    sideways and up (y, z) and lift the whole body (z): the basis spans the z translation only."""
-    v, f = synthetic.blob_mesh(3)
-    limb = (v[:, 0] > 0.5).astype(float)[:, None]
-    bend = limb * np.array([0.0, 0.0, 1.0]) * (v[:, :1] - 0.5)
-    push = limb * np.array([0.0, 1.0, 0.5])
-    lift = np.broadcast_to([0.0, 0.0, 1.0], v.shape)
-    b = latent.Basis(template=v, faces=f, fields=np.stack([bend, push, lift]), groups={}, weights="body")
-    return b, limb[:, 0] > 0
-
-
 def test_translation_codes_find_only_the_translations_a_basis_spans():
-    b, _ = _limb_basis()
+    b, _ = limb_basis()
     axes, codes = geodesics.translation_codes(b.tensors()[2])
     assert axes.tolist() == [2]
     assert np.allclose(codes, [[0.0, 0.0, 1.0]], atol=1e-9)
@@ -127,7 +115,7 @@ def test_translation_codes_find_only_the_translations_a_basis_spans():
 
 
 def test_anchor_path_removes_a_sinking_body_and_keeps_the_limb_motion():
-    b, limb = _limb_basis()
+    b, limb = limb_basis()
     assert limb.mean() < 0.4
     t, f, h = b.tensors()
     line = geodesics.straight_path([0.0, 0.0, 0.0], [1.5, 0.0, 0.0], 7)
@@ -160,7 +148,7 @@ def test_anchor_path_leaves_a_basis_without_translations_alone_and_checks_shapes
 
 
 def test_keyframe_path_anchors_then_paces_evenly():
-    b, _ = _limb_basis()
+    b, _ = limb_basis()
     t, f, h = b.tensors()
     line = geodesics.straight_path([0.0, 0.0, 0.0], [1.5, 0.0, 0.0], 7)
     path = line + np.sin(np.linspace(0, np.pi, 7))[:, None] * np.array([0.0, 0.3, -0.05])

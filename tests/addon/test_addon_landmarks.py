@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from tests.addon_support import add_mesh, bpy, code_surface, scene, select, snapshot, tiny  # noqa: F401
+from tests.addon.support import add_mesh, bpy, code_surface, select, snapshot
 
 NAMES = ["pose_000", "pose_001", "shape_000", "shape_001"]
 

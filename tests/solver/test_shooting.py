@@ -5,7 +5,7 @@ import torch
 from bareesa import geodesics, h2_metric, latent, shooting, synthetic
 from bareesa.errors import InputError, SolveCancelled
 from bareesa.progress import CancelToken
-from tests.test_latent import small_basis
+from tests.solver.support import small_basis
 
 
 def test_shooting_with_constant_metric_is_straight_line():
@@ -53,9 +53,9 @@ def test_extrapolate_keeps_given_frames_and_appends_new_ones():
 
 
 def test_anchored_extrapolation_keeps_the_unmoving_body_on_the_straight_line():
-    from tests.test_geodesic import _limb_basis
+    from tests.solver.support import limb_basis
 
-    b, limb = _limb_basis()
+    b, limb = limb_basis()
     t, f, h = b.tensors()
     a0, a1 = np.zeros(3), np.array([0.3, 0.1, 0.0])
     free = shooting.extrapolate(t, f, h, a0, a1, b.weights, n_new=3)

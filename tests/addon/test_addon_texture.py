@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from tests.addon_support import add_mesh, bpy, code_surface, scene, select, tiny, tiny_basis  # noqa: F401
+from tests.addon.support import add_mesh, bpy, code_surface, select, tiny_basis
 
 from mathutils.bvhtree import BVHTree  # noqa: E402 (after bpy)
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from bareesa import synthetic, workflows
-from tests.test_workflows import A, B, sphere  # noqa: F401 (sphere: the basis fixture)
+from tests.solver.support import A, B
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 

@@ -13,22 +13,8 @@ from bareesa.basis_io import save_basis
 from bareesa.errors import InputError
 from bareesa.h2_metric import PRESETS
 from bareesa.mesh import save_mesh
-from bareesa.statistics import fit_distribution
 from bareesa.transforms import Similarity
-
-A = np.array([0.2, -0.3, 0.4, 0.1])
-B = np.array([-0.5, 0.6, 0.1, 0.7])
-
-
-@pytest.fixture(scope="module")
-def sphere():
-    """A 4-field smooth sphere basis with a fitted distribution, and its surface map."""
-    basis, surface = synthetic.smooth_sphere_basis(subdivisions=1, n_fields=4, seed=0)
-    rng = np.random.default_rng(0)
-    basis.extras.update(fit_distribution(0.5 * rng.normal(size=(12, 4)), basis.groups,
-                                         {g: 1 for g in basis.groups}, seed=0))
-    return basis, surface
-
+from tests.solver.support import A, B
 
 def raw_scan(surface, code, seed):
     """F(code) on another triangulation of the sphere: a workflows.Scan."""
@@ -131,7 +117,7 @@ def test_code_of_each_input_kind(sphere):
 def test_cli_and_addon_interpolate_to_the_same_path(tmp_path, capsys):
     """Two meshes through ``bareesa interpolate`` and the same codes through the add-on's Interpolate
     (registered objects): one path (geodesic steps, preconditioning, anchoring and pacing agree)."""
-    support = pytest.importorskip("tests.addon_support")
+    support = pytest.importorskip("tests.addon.support")
     import bareesa_addon
     from bareesa.latent import project_to_basis
     from bareesa_addon import convert

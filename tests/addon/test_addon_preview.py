@@ -8,8 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from tests.addon_support import add_mesh, bpy, code_surface, scene, select, snapshot, tiny  # noqa: F401
-from tests.test_addon_jobs import fake_context
+from tests.addon.support import add_mesh, bpy, code_surface, fake_context, select, snapshot
 
 NAMES = ["pose_000", "pose_001", "shape_000", "shape_001"]
 ALPHA = np.array([0.6, -0.4, 0.5, 0.3])
