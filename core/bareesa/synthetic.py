@@ -163,3 +163,94 @@ def remesh_same_surface(verts, faces, seed=0):
     rank = np.empty_like(perm)
     rank[perm] = np.arange(len(perm))
     return all_verts[perm], rank[split][rng.permutation(len(split))]
+
+
+_FREE, _HIP, _KNEE = ((-180, 180),) * 3, ((-130, 30), (-45, 45), (-45, 45)), ((0, 150), (-5, 5), (-5, 5))
+#: The joints of ``articulated_figure``: name, centre (3,), parent (-1: the root), range of the rotation
+#: vector about each rest axis (degrees): a hip flexes forward (-x), a knee bends back (+x) only
+FIGURE_JOINTS = (("root", (0.0, 0.0, 0.9), -1, _FREE),
+                 ("shoulder.L", (0.22, 0.0, 1.38), 0, _FREE), ("shoulder.R", (-0.22, 0.0, 1.38), 0, _FREE),
+                 ("hip.L", (0.1, 0.0, 0.9), 0, _HIP), ("knee.L", (0.1, 0.0, 0.5), 3, _KNEE),
+                 ("hip.R", (-0.1, 0.0, 0.9), 0, _HIP), ("knee.R", (-0.1, 0.0, 0.5), 5, _KNEE))
+
+
+def _capsule_between(a, b, radius, count=(10, 10)):
+    """A capsule mesh from point a to point b (3,): -> (V, 3), (F, 3)."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    axis = b - a
+    length = float(np.linalg.norm(axis))
+    cap = trimesh.creation.capsule(height=length, radius=radius, count=list(count))
+    verts = np.asarray(cap.vertices) + [0.0, 0.0, length / 2]  # along +z from the origin
+    z = axis / length
+    x = np.cross(z, [0.0, 1.0, 0.0] if abs(z[1]) < 0.9 else [1.0, 0.0, 0.0])
+    x /= np.linalg.norm(x)
+    frame = np.stack([x, np.cross(z, x), z], 1)
+    return verts @ frame.T + a, np.asarray(cap.faces, dtype=np.int64)
+
+
+def articulated_figure():
+    """A stick figure of capsules (torso, arms hanging down, thighs, shins) and its skeleton, arms down at
+    rest: -> verts (N, 3), faces (F, 3), skinning weights (N, J) (each capsule on one joint), joints (J, 3),
+    parents (J,), limits (J, 3, 2) radians (``FIGURE_JOINTS``)."""
+    parts = [((0.0, 0.0, 0.85), (0.0, 0.0, 1.45), 0.16, 0), ((0.22, 0.0, 1.36), (0.22, 0.0, 0.86), 0.05, 1),
+             ((-0.22, 0.0, 1.36), (-0.22, 0.0, 0.86), 0.05, 2), ((0.1, 0.0, 0.88), (0.1, 0.0, 0.52), 0.07, 3),
+             ((0.1, 0.0, 0.48), (0.1, 0.0, 0.1), 0.055, 4), ((-0.1, 0.0, 0.88), (-0.1, 0.0, 0.52), 0.07, 5),
+             ((-0.1, 0.0, 0.48), (-0.1, 0.0, 0.1), 0.055, 6)]
+    verts, faces, owner = [], [], []
+    for a, b, radius, joint in parts:
+        v, f = _capsule_between(a, b, radius)
+        faces.append(f + sum(len(x) for x in verts))
+        verts.append(v)
+        owner.append(np.full(len(v), joint))
+    owner = np.concatenate(owner)
+    weights = np.zeros((len(owner), len(FIGURE_JOINTS)))
+    weights[np.arange(len(owner)), owner] = 1.0
+    joints = np.array([c for _, c, _, _ in FIGURE_JOINTS])
+    parents = np.array([p for _, _, p, _ in FIGURE_JOINTS])
+    limits = np.radians([m for *_, m in FIGURE_JOINTS])
+    return np.concatenate(verts), np.concatenate(faces), weights, joints, parents, limits
+
+
+def figure_pose(degrees):
+    """Rotation vectors (J, 3) of the figure from {joint: (x, y, z) degrees}: a rotation vector in the
+    rest frame's axes (left = +x, facing -y; a hip's -x flexion raises the knee forward)."""
+    out = np.zeros((len(FIGURE_JOINTS), 3))
+    names = [n for n, *_ in FIGURE_JOINTS]
+    for name, rotvec in degrees.items():
+        out[names.index(name)] = np.radians(rotvec)
+    return out
+
+
+def articulated_figure_basis(n_train=80, n_fields=60, seed=0, max_degrees=60.0, schedule=None):
+    """A small latent space of the articulated figure (``articulated_figure``) with its skeleton in extras:
+    pose fields from the PCA of ``n_train`` random poses (each joint's rotation vector drawn inside its
+    range, each component at most ``max_degrees``), a short test schedule -> (Basis, posed(rotvecs (J, 3)) -> (N, 3) vertices)."""
+    import torch
+
+    from .latent import Basis, Level
+    from .registration.articulated import Skeleton, skin
+
+    verts, faces, weights, joints, parents, limits = articulated_figure()
+    names = np.array(["|".join(n for n, *_ in FIGURE_JOINTS)])
+    skeleton = Skeleton(joints, parents, weights, limits, np.zeros((0, len(joints), 3)), ())
+    rest = torch.as_tensor(verts)
+
+    def posed(rotvecs):
+        with torch.no_grad():
+            return skin(skeleton, rest, torch.as_tensor(np.asarray(rotvecs, dtype=np.float64))).numpy()
+
+    rng = np.random.default_rng(seed)
+    reach = np.radians(max_degrees)
+    draws = rng.uniform(np.maximum(limits[..., 0], -reach), np.minimum(limits[..., 1], reach),
+                        size=(n_train, len(joints), 3))
+    draws[:, 0] = 0.0
+    offsets = np.stack([posed(d) - verts for d in draws]).reshape(n_train, -1)
+    _, _, vt = np.linalg.svd(offsets, full_matrices=False)
+    fields = vt[:n_fields].reshape(n_fields, -1, 3) * 0.3
+    if schedule is None:
+        schedule = (Level(0.2, 1e3, 1, 60), Level(0.08, 1e5, 2, 80), Level(0.04, 1e7, 2, 80))
+    extras = {"skeleton_joints": joints, "skeleton_parents": parents, "skinning_weights": weights,
+              "skeleton_limits": limits, "skeleton_names": names}
+    basis = Basis(template=verts, faces=faces, fields=fields, groups={"pose": (0, n_fields)}, weights="body",
+                  schedule=schedule, scale=float(np.ptp(verts[:, 2])), name="figure", units="m", extras=extras)
+    return basis, posed

@@ -109,7 +109,7 @@ def test_prealignment_scale_stays_bounded_and_finite_on_a_scan_with_far_clutter(
     scan_f = np.concatenate([faces, speck_f + len(verts)])
     rho = lambda v, f: math.sqrt(np.trace(surface_moments(v, f)[2]))  # noqa: E731
     matched = rho(verts, faces) / rho(scan_v, scan_f)
-    for score, sim, _ in prealign_candidates(verts, faces, scan_v, scan_f):
+    for score, sim, *_ in prealign_candidates(verts, faces, scan_v, scan_f):
         assert np.isfinite(score) and np.isfinite(sim.matrix()).all()
         assert abs(math.log(sim.scale / matched)) <= Prealignment().log_scale_limit + 1e-9
 

@@ -9,7 +9,7 @@ the add-on's panel all build a variant with ``with_overrides``. Keys of nested s
 
 import json
 import math
-from dataclasses import dataclass, field, fields, is_dataclass, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 import torch
@@ -122,6 +122,31 @@ class PoseSearch:
 
 
 @dataclass(frozen=True)
+class ArticulatedFit:
+    """The articulated pre-fit of a basis with a skeleton (``articulated.fit_pose``).
+
+    enabled: run it (a basis without a skeleton never does); alignments: the best pre-alignment candidates
+    it starts from (the one that fits best is kept); sigmas: of its coarse then finer varifold,
+    relative to the basis' scale; cell: both surfaces' cells in units of sigma; starts: the best-scored starts (rest and the skeleton's pose library) fitted;
+    max_iter: L-BFGS steps per sigma; limit_weight: of the penalty on rotations past a joint's range;
+    prior: of the squared rotations (rest is preferred where the scan cannot tell); scale_limit: the
+    largest change of the alignment's scale; projection_ridge: of the posed template's projection into
+    the latent space (``latent.project_to_basis``).
+    """
+
+    enabled: bool = True
+    alignments: int = 3
+    sigmas: tuple = (0.3, 0.15, 0.07)
+    cell: float = 0.5
+    starts: int = 2
+    max_iter: int = 60
+    limit_weight: float = 10.0
+    prior: float = 1e-4
+    scale_limit: float = 1.15
+    projection_ridge: float = 5e-3
+
+
+@dataclass(frozen=True)
 class MatchingSolve:
     """The joint solve of symmetric matching: plateau_window, plateau its stop (the path energy is a
     small part of the objective, so a level's plateau would stop it too early); start_dtype: of the
@@ -132,8 +157,8 @@ class MatchingSolve:
     start_dtype: torch.dtype = torch.float32
 
 
-_SECTIONS = {"prealignment": Prealignment, "solve": LevelSolve, "screening": Screening, "poses": PoseSearch,
-             "matching": MatchingSolve}
+_SECTIONS = {"prealignment": Prealignment, "articulated": ArticulatedFit, "solve": LevelSolve,
+             "screening": Screening, "poses": PoseSearch, "matching": MatchingSolve}
 
 
 @dataclass(frozen=True, eq=False)
@@ -166,6 +191,7 @@ class RegistrationConfig:
     dtype: torch.dtype = torch.float64
     device: str = "cpu"
     prealignment: Prealignment = field(default_factory=Prealignment)
+    articulated: ArticulatedFit = field(default_factory=ArticulatedFit)
     solve: LevelSolve = field(default_factory=LevelSolve)
     screening: Screening = field(default_factory=Screening)
     poses: PoseSearch = field(default_factory=PoseSearch)
@@ -260,7 +286,7 @@ class RegistrationConfig:
         out = {}
         for f in fields(self):
             value = getattr(self, f.name)
-            if is_dataclass(value) and not isinstance(value, Level):
+            if f.name in _SECTIONS:
                 out[f.name] = {g.name: _plain(getattr(value, g.name)) for g in fields(value)}
             else:
                 out[f.name] = _plain(value)

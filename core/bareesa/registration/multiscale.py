@@ -30,6 +30,7 @@ from ..progress import Monitor
 from ..threads import with_one_blas_thread
 from ..transforms import Similarity
 from ..varifold import build_keops_kernels
+from .articulated import Skeleton, articulated_start
 from .checks import (check_face_weights, check_landmarks, check_plausible_scan, fit_residual, is_poor_fit,
                      level_kernels)
 from .config import RegistrationConfig
@@ -142,6 +143,18 @@ def register(basis, scan_verts, scan_faces, config=None, *, landmarks=None, scan
     # best candidates apart
     screened = candidates if poses is None else [c for c in candidates
                                                  if c.score <= config.prealignment.tie * candidates[0].score]
+    skeleton = Skeleton.of_basis(basis) if config.prealign and config.articulated.enabled else None
+    articulated = None
+    if skeleton is not None and init_code is None:
+        # the skeleton posed from the best few alignments: the first fit starts from the best pose's code
+        monitor.report(lo, "registration: posing the skeleton")
+        t0 = time.perf_counter()
+        tried = candidates[:config.articulated.alignments]
+        code, transform, pose = articulated_start(basis, skeleton, sv, sf, [c.transform for c in tried],
+                                                  config.articulated, face_w, monitor)
+        screened = [Alignment(tried[0].score, transform, None, code)]
+        candidates = screened + candidates
+        articulated = {"score": pose.score, "start": pose.start, "seconds": time.perf_counter() - t0}
     fit = _fit(config, state, screened)
     retried = 0
     if fit.poor and config.prealign and config.retry:
@@ -164,7 +177,7 @@ def register(basis, scan_verts, scan_faces, config=None, *, landmarks=None, scan
                               levels=fit.levels, varifold=fit.levels[-1]["varifold"],
                               chamfer=chamfer(fit.vertices, used), seconds=time.perf_counter() - start_time,
                               prealignment=fit.initial, residual=fit.residual, poor_fit=fit.poor,
-                              normal_spread=spread, retried_alignments=retried)
+                              normal_spread=spread, retried_alignments=retried, articulated=articulated)
 
 
 def _candidates(config, basis, sv, sf, face_w, marks, poses, monitor):
@@ -197,9 +210,14 @@ def half_turns(basis):
 
 
 def _start(path, poses, alignment):
-    """The path (2, P) a candidate alignment is screened from: the straight path to the pose prototype it was
-    found against (``Alignment.reference``), or ``path`` (also when that already leads somewhere: an init_code)."""
-    if alignment.reference is None or poses is None or np.any(path[-1]):
+    """The path (2, P) a candidate alignment is screened from: the straight path to its own start code
+    (``Alignment.code``, the articulated fit's) or to the pose prototype it was found against
+    (``Alignment.reference``), else ``path`` (also when that already leads somewhere: an init_code)."""
+    if np.any(path[-1]):
+        return path
+    if alignment.code is not None:
+        return np.stack([np.zeros_like(path[-1]), alignment.code])
+    if alignment.reference is None or poses is None:
         return path
     return np.stack([np.zeros_like(path[-1]), poses[alignment.reference]])
 

@@ -30,12 +30,14 @@ from .config import Prealignment
 
 class Alignment(NamedTuple):
     """A candidate alignment: score (the normalised squared varifold it reached), transform (Similarity
-    scan -> template frame) and reference (the index of the reference surface it was found against, None
-    for the template)."""
+    scan -> template frame), reference (the index of the reference surface it was found against, None
+    for the template) and code (P,) the latent code the registration starts from (None: rest or the
+    reference's)."""
 
     score: float
     transform: Similarity
     reference: int = None
+    code: np.ndarray = None
 
 
 def bounded_log_scale(l, limit):

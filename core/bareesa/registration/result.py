@@ -22,7 +22,8 @@ class RegistrationResult:
     it is far above what the basis reaches on its own scans (``basis.fit_check``; None uncalibrated);
     normal_spread the scan's (``problem.normal_spread``), which chose the finest kernel of "auto";
     retried_alignments how many other alignments a poor fit was tried again from (0: none; the result
-    is the better of the two tries).
+    is the better of the two tries); articulated the skeleton's pre-fit when it ran {score, start (-1 rest,
+    else the pose library's index), seconds}, else None.
     """
 
     code: np.ndarray
@@ -38,6 +39,7 @@ class RegistrationResult:
     poor_fit: bool = None
     normal_spread: float = None
     retried_alignments: int = 0
+    articulated: dict = None
 
     def to_json(self):
         """JSON-ready summary {code, varifold, chamfer, residual, poor_fit, retried_alignments, normal_spread,
@@ -46,7 +48,7 @@ class RegistrationResult:
                 "normal_spread": None if self.normal_spread is None else float(self.normal_spread),
                 "chamfer": float(self.chamfer), "seconds": float(self.seconds),
                 "residual": None if self.residual is None else float(self.residual), "poor_fit": self.poor_fit,
-                "retried_alignments": int(self.retried_alignments),
+                "retried_alignments": int(self.retried_alignments), "articulated": self.articulated,
                 "levels": [{k: (float(v) if isinstance(v, float) else v) for k, v in lv.items()}
                            for lv in self.levels],
                 "transform": self.transform.to_dict()}

@@ -1,0 +1,78 @@
+"""The articulated pre-fit: a basis' skeleton posed by linear blend skinning, its pose found from rest and
+handed to the latent levels, so that a pose far from every training pose is registered."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from bareesa import registration, synthetic
+from bareesa.latent import Level
+from bareesa.registration import articulated
+from bareesa.registration.config import ArticulatedFit
+from bareesa.transforms import Similarity
+
+#: a knee raised and turned out with the foot folded back (a tree pose's leg) and both arms raised high:
+#: every joint past the training poses' 60 degrees
+FAR_POSE = {"hip.L": (-100, 0, 40), "knee.L": (120, 0, 0), "shoulder.L": (0, -160, 0), "shoulder.R": (0, 150, 0)}
+SCHEDULE = (Level(0.2, 1e7, 1, 60), Level(0.08, 1e9, 2, 80), Level(0.04, 1e11, 2, 80))
+
+
+@pytest.fixture(scope="module")
+def figure():
+    return synthetic.articulated_figure_basis(schedule=SCHEDULE)
+
+
+def test_skinning_at_rest_is_the_template_and_a_joint_moves_its_subtree_rigidly(figure):
+    basis, posed = figure
+    skeleton = articulated.Skeleton.of_basis(basis)
+    assert np.allclose(posed(np.zeros((len(skeleton.joints), 3))), basis.template, atol=1e-12)
+    bent = posed(synthetic.figure_pose({"hip.L": (-90, 0, 0)}))
+    names = [n for n, *_ in synthetic.FIGURE_JOINTS]
+    moved = np.linalg.norm(bent - basis.template, axis=1) > 1e-9
+    leg = skeleton.weights[:, [names.index("hip.L"), names.index("knee.L")]].sum(1) > 0
+    assert np.array_equal(moved, leg)  # the thigh and the shin follow the hip, nothing else moves
+    knee = skeleton.joints[names.index("knee.L")]
+    hip = skeleton.joints[names.index("hip.L")]
+    thigh = skeleton.weights[:, names.index("hip.L")] > 0
+    # rigid: distances to the hip kept; the knee, 0.4 m below the hip, now 0.4 m in front of it (-y)
+    assert np.allclose(np.linalg.norm(bent[thigh] - hip, axis=1), np.linalg.norm(basis.template[thigh] - hip, axis=1))
+    rotation = articulated.batch_rotations(torch.as_tensor(np.radians([[-90.0, 0.0, 0.0]])))[0].numpy()
+    assert np.allclose(rotation @ (knee - hip) + hip, hip + [0.0, -0.4, 0.0], atol=1e-12)
+
+
+def test_a_skeleton_is_read_from_the_basis_and_a_damaged_one_is_ignored(figure):
+    basis, _ = figure
+    assert articulated.Skeleton.of_basis(basis).names[3] == "hip.L"
+    assert articulated.Skeleton.of_basis(dataclasses.replace(basis, extras={})) is None
+    broken = dict(basis.extras, skeleton_parents=np.array([0, 0, 0, 0, 3, 0, 5]))  # the root its own parent
+    assert articulated.Skeleton.of_basis(dataclasses.replace(basis, extras=broken)) is None
+    reversed_range = dict(basis.extras, skeleton_limits=basis.extras["skeleton_limits"][..., ::-1])
+    assert articulated.Skeleton.of_basis(dataclasses.replace(basis, extras=reversed_range)) is None
+
+
+def test_the_far_pose_is_found_from_rest_by_the_articulated_fit(figure):
+    basis, posed = figure
+    truth = posed(synthetic.figure_pose(FAR_POSE))
+    scan = synthetic.remesh_same_surface(truth, basis.faces, seed=1)
+    fit = articulated.fit_pose(articulated.Skeleton.of_basis(basis), basis, *scan, [Similarity()], ArticulatedFit())
+    found = fit.transform.invert(fit.posed)
+    assert np.linalg.norm(found - truth, axis=1).mean() < 0.02  # 2 cm on a 1.5 m figure
+    assert fit.start >= 0  # found by the search, not by the rest start's descent
+
+
+def test_a_pose_never_in_training_registers_with_the_articulated_stage_and_not_without(figure):
+    basis, posed = figure
+    truth = posed(synthetic.figure_pose(FAR_POSE))
+    scan = synthetic.remesh_same_surface(truth, basis.faces, seed=1)
+    names = [n for n, *_ in synthetic.FIGURE_JOINTS]
+    foot = np.argmin(np.where(basis.extras["skinning_weights"][:, names.index("knee.L")] > 0,
+                              basis.template[:, 2], np.inf))  # the left shin's lowest vertex
+    res = registration.register(basis, *scan)
+    assert res.articulated is not None and res.articulated["seconds"] > 0
+    assert np.linalg.norm(res.vertices - truth, axis=1).mean() < 0.1
+    assert np.linalg.norm(res.vertices[foot] - truth[foot]) < 0.15  # the folded foot is where it is
+    plain = registration.register(basis, *scan, **{"articulated.enabled": False})
+    assert plain.articulated is None
+    assert np.linalg.norm(plain.vertices - truth, axis=1).mean() > 3 * np.linalg.norm(res.vertices - truth, axis=1).mean()
