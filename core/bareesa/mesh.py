@@ -7,7 +7,7 @@ Blender shape keys rely on it). Files are read by trimesh with
 ``process=False``; PLY and OBJ are written here in float64 so that a save/load
 round trip is exact.
 
-Format notes (each is tested in ``tests/test_mesh.py``):
+Format notes (each is tested in ``tests/solver/test_mesh.py``):
 
 * Quads and n-gons are fan-triangulated by trimesh ((a, b, c), (c, d, a) for
   a quad); vertices are untouched but the face order of such files is
