@@ -224,3 +224,31 @@ def test_worker_processes_that_cannot_start_fall_back_to_blenders_process(scene,
     assert bpy.ops.bareesa.register_scan(processes=2) == {"FINISHED"}
     for k in range(2):
         assert np.isfinite(key_values(bpy.data.objects[f"scan{k}_registered"], NAMES)).all()
+
+
+def test_the_panels_registration_settings_reach_the_solve_and_a_bad_one_is_refused(scene, tiny):
+    """Pose Search, Retry Poor Fits and the Settings field become RegistrationConfig overrides; an unknown
+    setting is refused in one line before anything is solved, and the scene is left as it was."""
+    from bareesa_addon.operators.common import solve_options
+
+    basis = tiny[0]
+    settings = scene.bareesa
+    settings.pose_search, settings.retry_poor_fits = False, False
+    settings.registration_settings = "poses.finalists=3; solve.memory=20"
+    options = solve_options(bpy.context, basis)
+    config = options.registration_config(basis)
+    assert config.poses.candidates is None and config.retry is False
+    assert config.poses.finalists == 3 and config.solve.memory == 20
+    settings.pose_search, settings.retry_poor_fits, settings.registration_settings = True, True, ""
+    default = solve_options(bpy.context, basis).registration_config(basis)
+    assert default.poses.candidates == "auto" and default.retry is True and default.solve.memory != 20
+
+    _, _, surface = tiny
+    verts, faces = code_surface(surface, ALPHA)
+    select(add_mesh("scan", verts, faces))
+    settings.registration_settings = "poses.finalist=3"
+    before = snapshot()
+    with pytest.raises(RuntimeError, match="unknown registration setting 'poses.finalist'"):
+        bpy.ops.bareesa.register_scan()
+    assert snapshot() == before and "scan_registered" not in bpy.data.objects
+    settings.registration_settings = ""
