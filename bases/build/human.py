@@ -45,6 +45,7 @@ from .common import checked_template, elastic_paths, fit_basis_distribution, top
 from .landmarks import LANDMARK_NOTES, human_landmarks
 from .parts import PARTS_NOTE, human_parts
 from .motions import HUMAN_TEST_MOTIONS, HUMAN_TRAIN_MOTIONS, pose_at
+from .poses import EXTREME_POSES, POSE_FAMILIES, plausible, pose_family, random_pose, vertex_segments
 
 NAME = "human"
 #: The basis' H2 metrics (a0, a1, b1, c1, d1, a2): motion paths in MOTION_WEIGHTS (with the paper's body
@@ -66,6 +67,19 @@ BAKE_STEP = 3               # a mesh every BAKE_STEP frames -> 17 meshes per mot
 POSE_COMPONENTS = 100
 SHAPE_COMPONENTS = 40
 POSE_PROTOTYPES = 32
+#: Static postures each motion performer takes besides the motions (``bases/build/poses.py``, seeded by
+#: POSTURE_SEED + the performer's index, never the benchmarks' seeds): random anatomically valid ones and
+#: variants of every named family (arms overhead, tree pose, deep squat, sitting, kneeling, ...)
+RANDOM_POSTURES = 30
+FAMILY_VARIANTS = 3
+POSTURE_SEED = 1000
+#: A posture is kept when at most this many face pairs of different, non-adjacent body segments cross
+#: (``poses.plausible``): a hand resting on the body is kept, a limb through it is drawn again; the named
+#: families touch more by design (crossed arms, hands on the head)
+RANDOM_CROSSINGS, FAMILY_CROSSINGS = 30, 100
+#: The skeleton's pose library (starts of the articulated pre-fit): the named families' canonical postures
+#: and this many k-means centres of the random training postures' joint rotations
+LIBRARY_CENTRES = 16
 #: Random bodies: mixtures fitted to the log maps of this many training meshes (evenly chosen among
 #: the frames and rest bodies); many narrow pose components keep draws near poses people take.
 DISTRIBUTION_SAMPLES = 240
@@ -76,6 +90,20 @@ DISTRIBUTION_COMPONENTS = {"pose": 12, "shape": 3}
 HUMAN_SCHEDULE = (PAPER_BODY_SCHEDULE[0], replace(PAPER_BODY_SCHEDULE[1], weight=1e6, bin_cell=0.6),
                   Level(0.05 / 1.7, 1e8, 4, 200, plateau=1e-4, binned=True, bin_cell=0.6),
                   replace(PAPER_BODY_SCHEDULE[2], max_iter=300))
+
+#: The articulated pre-fit's skeleton (``bareesa.registration.articulated``): mannequin bone -> the Anny bone
+#: at whose head it turns; every other Anny bone's skinning weight goes to the nearest of these up its chain
+#: (fingers to the hand, toes to the foot, twist bones to their limb)
+SKELETON_HEADS = {"hips": "root", "spine": "spine05", "chest": "spine03", "neck": "neck01", "head": "head"}
+for _s in "LR":
+    SKELETON_HEADS.update({f"clavicle.{_s}": f"clavicle.{_s}", f"upper_arm.{_s}": f"upperarm01.{_s}",
+                           f"forearm.{_s}": f"lowerarm01.{_s}", f"hand.{_s}": f"wrist.{_s}",
+                           f"thigh.{_s}": f"upperleg01.{_s}", f"shin.{_s}": f"lowerleg01.{_s}",
+                           f"foot.{_s}": f"foot.{_s}"})
+#: The skeleton's joint ranges: the training postures' rotation vectors (rest axes) between these percentiles,
+#: widened by SKELETON_MARGIN (radians) on each side
+SKELETON_PERCENTILES = (0.5, 99.5)
+SKELETON_MARGIN = math.radians(10.0)
 
 #: Mannequin bone -> [(Anny bone, share of the rotation angle)].
 BONE_MAP = {"spine": [("spine05", 0.5), ("spine04", 0.5)], "chest": [("spine03", 0.5), ("spine02", 0.5)],
@@ -109,22 +137,43 @@ def cavity_faces(model):
     return get_face_segmentation_mask(model, list(CAVITIES)).cpu().numpy()
 
 
-def pose_matrices(motion, phases, bone_labels, dtype=np.float64):
-    """Anny pose parameters of a motion: phases (T,) -> (T, n_bones, 4, 4) local-ref rotations, root offsets (T, 3)."""
+def composed(seq, share=1.0):
+    """A bone's rotations [(axis, degrees)] composed in order (later ones act after earlier ones), each angle
+    times ``share``: -> (3, 3)."""
     from scipy.spatial.transform import Rotation
 
+    r = np.eye(3)
+    for axis, deg in seq:
+        r = Rotation.from_rotvec(np.asarray(axis) * math.radians(deg * share)).as_matrix() @ r
+    return r
+
+
+def posture_matrices(postures, bone_labels, dtype=np.float64):
+    """Anny pose parameters of postures [(rotations {mannequin bone: [(axis, degrees)]}, root (3,))] (the
+    format of ``motions.pose_at``) -> (T, n_bones, 4, 4) local-ref rotations, root offsets (T, 3)."""
     index = {b: i for i, b in enumerate(bone_labels)}
-    out = np.tile(np.eye(4, dtype=dtype), (len(phases), len(bone_labels), 1, 1))
-    roots = np.zeros((len(phases), 3))
-    for t, u in enumerate(phases):
-        rots, roots[t] = pose_at(motion, float(u))
+    out = np.tile(np.eye(4, dtype=dtype), (len(postures), len(bone_labels), 1, 1))
+    roots = np.zeros((len(postures), 3))
+    for t, (rots, root) in enumerate(postures):
+        roots[t] = root
         for bone, seq in rots.items():
-            for target, share in BONE_MAP[bone]:
-                r = np.eye(3)
-                for axis, deg in seq:  # composed in order: later rotations act after earlier ones
-                    r = Rotation.from_rotvec(np.asarray(axis) * math.radians(deg * share)).as_matrix() @ r
-                out[t, index[target], :3, :3] = r
+            for target, share in BONE_MAP.get(bone, ()):
+                out[t, index[target], :3, :3] = composed(seq, share)
     return out, roots
+
+
+def pose_matrices(motion, phases, bone_labels, dtype=np.float64):
+    """Anny pose parameters of a motion: phases (T,) -> (T, n_bones, 4, 4) local-ref rotations, root offsets (T, 3)."""
+    return posture_matrices([pose_at(motion, float(u)) for u in phases], bone_labels, dtype)
+
+
+def skeleton_rotations(rotations, names):
+    """The rotation vectors (J, 3) of the skeleton's joints (``SKELETON_HEADS`` names) in a posture's
+    rotations {mannequin bone: [(axis, degrees)]} (each bone's rotations composed; fingers, thumbs and toes
+    belong to their hand or foot and are left out)."""
+    from scipy.spatial.transform import Rotation
+
+    return np.stack([Rotation.from_matrix(composed(rotations.get(name, ()))).as_rotvec() for name in names])
 
 
 def identities(n_train=N_TRAIN_IDENTITIES, n_test=N_TEST_IDENTITIES, seed=SEED, model=None):
@@ -406,6 +455,43 @@ class Human:
         """Rest bodies (B, N, 3) of phenotypes {label: (B,)}."""
         return self.to_template(anny_bodies(self.model, phenotypes))
 
+    def postures(self, phenotype, postures):
+        """Bodies (K, N, 3) of one phenotype {label: scalar} in postures [(rotations, root)] (``posture_matrices``),
+        each on the floor."""
+        poses, _ = posture_matrices(postures, self.bones)
+        pheno = {k: np.full(len(postures), float(np.asarray(phenotype[k]).ravel()[0]))
+                 for k in self.model.phenotype_labels}
+        return self.to_template(anny_bodies(self.model, pheno, poses))
+
+    def skeleton(self):
+        """The template's skeleton as ``bareesa.registration.articulated`` reads it from a basis' extras (without
+        its ranges and pose library): joints (J, 3) at Anny's rest bone heads (the template's frame), parents,
+        skinning weights (N, J) from Anny's mapped onto the template, names -> dict of arrays."""
+        import torch
+
+        parents = [int(p) for p in np.asarray(self.model.bone_parents)]
+        position = {anny: name for name, anny in SKELETON_HEADS.items()}
+        heads = sorted(self.bones.index(anny) for anny in SKELETON_HEADS.values())  # parents before children
+        names = [position[self.bones[b]] for b in heads]
+        owner = np.empty(len(self.bones), dtype=np.int64)
+        for b, label in enumerate(self.bones):  # Anny lists parents before children
+            owner[b] = names.index(position[label]) if label in position else owner[parents[b]]
+        index = np.asarray(self.model.vertex_bone_indices.cpu().numpy(), dtype=np.int64)
+        weight = np.asarray(self.model.vertex_bone_weights.cpu().numpy(), dtype=np.float64)
+        dense = np.zeros((len(index), len(names)))
+        np.add.at(dense, (np.repeat(np.arange(len(index)), index.shape[1]), owner[index].ravel()), weight.ravel())
+        skin = np.asarray(self.map @ dense)
+        skin /= np.maximum(skin.sum(1, keepdims=True), 1e-12)
+        kw = {k: torch.full((1,), 0.5, dtype=self.model.dtype) for k in self.model.phenotype_labels}
+        with torch.no_grad():
+            out = self.model(pose_parameters=None, phenotype_kwargs=kw)
+        rest = out["vertices"][0].cpu().numpy().astype(np.float64)
+        joints = out["rest_bone_heads"][0].cpu().numpy().astype(np.float64)[heads]
+        joints[:, 2] -= (self.map @ rest)[:, 2].min()  # on the floor, as ``to_template`` puts the body
+        joint_parents = np.array([-1 if parents[b] < 0 else owner[parents[b]] for b in heads])
+        return {"skeleton_joints": joints, "skeleton_parents": joint_parents, "skinning_weights": skin,
+                "skeleton_names": np.array(["|".join(names)])}
+
     def motion(self, phenotype, motion, frames=FRAMES, step=BAKE_STEP):
         """A sequence (T, N, 3) of one phenotype {label: scalar} performing a motion."""
         phases = np.arange(0, frames + 1, step) / frames
@@ -415,6 +501,30 @@ class Human:
         seq[..., :2] += roots[:, None, :2]
         seq[..., 2] += np.maximum(roots[:, None, 2], 0.0)  # flight; crouches are put on the floor by to_template
         return seq
+
+
+SKELETON_NOTE = ("Anny's rig reduced to the mannequin's bones (SKELETON_HEADS: joints at Anny's rest bone heads, "
+                 "Anny's skinning weights summed per joint and mapped onto the template); ranges: the training "
+                 "postures' rotation vectors between the 0.5 and 99.5 percentiles, widened by 10 degrees; pose "
+                 "library: the named families' canonical postures and k-means centres of the random postures")
+
+
+def skeleton_extras(human, postures):
+    """The skeleton's arrays for ``basis.extras`` (``Human.skeleton``), with its ranges and pose library from
+    the training postures [(rotations, root)]: -> dict."""
+    from sklearn.cluster import KMeans
+
+    extras = human.skeleton()
+    names = str(extras["skeleton_names"][0]).split("|")
+    rotvecs = np.stack([skeleton_rotations(rot, names) for rot, _ in postures])
+    lo, hi = np.percentile(rotvecs, SKELETON_PERCENTILES, axis=0)
+    limits = np.stack([lo - SKELETON_MARGIN, hi + SKELETON_MARGIN], -1)
+    limits[0] = [-math.pi, math.pi]  # the root's rotation is the alignment's
+    named = np.stack([skeleton_rotations(rot, names) for rot, _ in EXTREME_POSES.values()])
+    centres = KMeans(LIBRARY_CENTRES, n_init=4, random_state=SEED).fit(rotvecs.reshape(len(rotvecs), -1))
+    library = np.concatenate([named, centres.cluster_centers_.reshape(-1, len(names), 3)])
+    return {**extras, "skeleton_limits": limits, "skeleton_pose_library": np.clip(library, limits[..., 0],
+                                                                                 limits[..., 1])}
 
 
 def _take(pheno, i):
@@ -433,8 +543,31 @@ def generate(log=print, test=True, motion_identities=MOTION_IDENTITIES, n_train=
     sequences = {(i, m): human.motion(p, m).astype(np.float32) for i, p in enumerate(performers)
                  for m in HUMAN_TRAIN_MOTIONS}
     log(f"human: baked {len(sequences)} training sequences ({time.perf_counter() - t0:.0f} s)")
+    segments = vertex_segments(human.bones, human.model.vertex_bone_indices.cpu().numpy(),
+                               human.model.vertex_bone_weights.cpu().numpy(), human.map)[0]
+    postures, bodies, dropped = [], [], 0
+    for i, p in enumerate(performers):
+        rng = np.random.default_rng(POSTURE_SEED + i)
+        kept = [human.rest(p)[0]]
+        for draw, wanted, crossings in ((lambda: random_pose(rng), RANDOM_POSTURES, RANDOM_CROSSINGS),) + tuple(
+                (lambda name=name: pose_family(name, rng), FAMILY_VARIANTS, FAMILY_CROSSINGS) for name in POSE_FAMILIES):
+            found = 0
+            for _ in range(4):  # batches of draws until enough cross nothing but themselves
+                batch = [draw() for _ in range(wanted - found)]
+                for posture, body in zip(batch, human.postures(p, batch)):
+                    if plausible(body, human.faces, crossings, segments):
+                        postures.append(posture)
+                        kept.append(body)
+                        found += 1
+                    else:
+                        dropped += 1
+                if found == wanted:
+                    break
+        bodies.append(np.stack(kept).astype(np.float32))
+    log(f"human: baked {len(postures)} training postures, {dropped} crossing ones drawn again "
+        f"({time.perf_counter() - t0:.0f} s)")
     data = {"template": human.template, "faces": human.faces, "train_identities": train, "train_rest": rests,
-            "sequences": sequences, "human": human}
+            "sequences": sequences, "postures": postures, "posture_bodies": bodies, "human": human}
     if test:
         data["test_identities"] = test_ids
         data["test_rest"] = human.rest(test_ids)
@@ -471,7 +604,9 @@ def build(pose_components=POSE_COMPONENTS, shape_components=SHAPE_COMPONENTS, lo
     if human is not None:
         provenance["template_quality"] = human.quality
     log("human: PCA")
-    basis = build_basis(template, faces, {"pose": list(data["sequences"].values()), "shape": shape_paths},
+    # a posture is a step from its performer's rest body (the first of each performer's bodies)
+    steps = [np.stack([b[0], x]) for b in data.get("posture_bodies", ()) for x in b[1:]]
+    basis = build_basis(template, faces, {"pose": list(data["sequences"].values()) + steps, "shape": shape_paths},
                         {"pose": pose_components, "shape": shape_components}, weights=MOTION_WEIGHTS,
                         scale=height, name=NAME, units="m", schedule=HUMAN_SCHEDULE, provenance=provenance,
                         landmarks=human_landmarks(template))
@@ -486,11 +621,20 @@ def build(pose_components=POSE_COMPONENTS, shape_components=SHAPE_COMPONENTS, lo
         basis.extras.update(human_parts(faces, human.uv))
         basis.provenance["parts"] = PARTS_NOTE
     frames = np.concatenate([s[1:] for s in data["sequences"].values()])
-    log(f"human: {POSE_PROTOTYPES} pose prototypes from {len(frames)} training frames")
-    basis.extras["pose_prototypes"] = pose_prototypes(basis, frames, POSE_PROTOTYPES, seed=SEED)
-    basis.provenance["pose_prototypes"] = (f"{POSE_PROTOTYPES} k-means centres of the codes of the {len(frames)} "
-                                           "training frames (clustered on the pose group): registration's pose "
-                                           "candidates")
+    held = [b[1:] for b in data.get("posture_bodies", ())]
+    every = np.concatenate([frames, *held]) if held else frames
+    log(f"human: {POSE_PROTOTYPES} pose prototypes from {len(every)} training frames and postures")
+    basis.extras["pose_prototypes"] = pose_prototypes(basis, every, POSE_PROTOTYPES, seed=SEED)
+    basis.provenance["pose_prototypes"] = (f"{POSE_PROTOTYPES} k-means centres of the codes of the {len(every)} "
+                                           "training frames and postures (clustered on the pose group): "
+                                           "registration's pose candidates")
+    if human is not None and data.get("postures"):
+        basis.extras.update(skeleton_extras(human, data["postures"]))
+        basis.provenance["skeleton"] = SKELETON_NOTE
+        basis.provenance["postures"] = (f"{len(data['postures'])} static postures of the motion performers "
+                                        f"(bases/build/poses.py, seeds {POSTURE_SEED}+): {RANDOM_POSTURES} "
+                                        f"random anatomically valid ones and {FAMILY_VARIANTS} variants of each of "
+                                        f"{len(POSE_FAMILIES)} families each")
     if distribution:
         log("human: fitting the distribution of initial velocities")
         frames = np.concatenate([frames, data["train_rest"]])

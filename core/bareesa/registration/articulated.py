@@ -19,7 +19,7 @@ import torch
 from ..latent import project_to_basis
 from ..optimize import minimize_lbfgs
 from ..transforms import Similarity, axis_angle_rotation
-from ..varifold import BinnedMeasureLoss, cell_features, varifold_measure
+from ..varifold import BinnedMeasureLoss, cell_features
 from .prealign import bounded_log_scale, coarse_measure, surface_centroid
 
 #: ``Basis.extras`` keys of a skeleton (``Skeleton.of_basis``)
@@ -80,29 +80,73 @@ class Skeleton:
 
 
 def batch_rotations(rotvecs):
-    """Rotation matrices of rotation vectors: (J, 3) tensor -> (J, 3, 3) (differentiable)."""
+    """Rotation matrices of rotation vectors: (J, 3) tensor -> (J, 3, 3) by Rodrigues' formula (differentiable;
+    the coefficients from their series near 0)."""
     w = rotvecs
     z = torch.zeros_like(w[:, 0])
     skew = torch.stack([torch.stack([z, -w[:, 2], w[:, 1]], -1), torch.stack([w[:, 2], z, -w[:, 0]], -1),
                         torch.stack([-w[:, 1], w[:, 0], z], -1)], 1)
-    return torch.linalg.matrix_exp(skew)
+    t = (w * w).sum(1)
+    small = t < 1e-6
+    safe = torch.where(small, torch.ones_like(t), t)
+    angle = torch.sqrt(safe)
+    a = torch.where(small, 1 - t / 6, torch.sin(angle) / angle)
+    b = torch.where(small, 0.5 - t / 24, (1 - torch.cos(angle)) / safe)
+    eye = torch.eye(3, dtype=w.dtype, device=w.device)
+    return eye + a[:, None, None] * skew + b[:, None, None] * (skew @ skew)
+
+
+def _depth_levels(parents):
+    """The joints grouped by depth, root first: [(joints (k,), their parents (k,))] as index arrays."""
+    depth = np.zeros(len(parents), dtype=np.int64)
+    for j, p in enumerate(parents):
+        depth[j] = 0 if p < 0 else depth[p] + 1
+    return [(np.flatnonzero(depth == d), np.asarray(parents)[depth == d]) for d in range(int(depth.max()) + 1)]
+
+
+def joint_transforms(parents, joints, rotvecs):
+    """Each joint's rigid motion x -> R x + t from rotation vectors (J, 3) tensor (each about its joint centre
+    joints (J, 3), in the rest frame's axes, after its parent's): -> (R (J, 3, 3), t (J, 3)). One batched
+    step per depth of the tree (a few dozen tensor operations, not a few per joint)."""
+    local = batch_rotations(rotvecs)
+    local_shift = joints - (local @ joints[:, :, None])[..., 0]  # x -> R (x - c) + c
+    order, rots, shifts = [], [], []
+    position = np.empty(len(parents), dtype=np.int64)  # each joint's row in the stacked results
+    for idx, par in _depth_levels(parents):
+        r_local, t_local = local[idx], local_shift[idx]
+        if par[0] < 0:
+            r, t = r_local, t_local
+        else:
+            rows = torch.as_tensor(position[par])
+            r_parent, t_parent = torch.cat(rots)[rows], torch.cat(shifts)[rows]
+            r = r_parent @ r_local
+            t = (r_parent @ t_local[:, :, None])[..., 0] + t_parent
+        position[idx] = len(order) + np.arange(len(idx))
+        order += list(idx)
+        rots.append(r)
+        shifts.append(t)
+    back = torch.as_tensor(np.argsort(order))
+    return torch.cat(rots)[back], torch.cat(shifts)[back]
 
 
 def skin(skeleton, verts, rotvecs, tensors=None):
     """The template posed by linear blend skinning: verts (N, 3) tensor at rest, rotvecs (J, 3) tensor (each
     joint's rotation about its centre, in the rest frame's axes; the root's included) -> (N, 3) tensor."""
     joints, weights, _ = tensors or skeleton.tensors(verts.dtype, verts.device)
-    local = batch_rotations(rotvecs)
-    rot, shift = [None] * len(joints), [None] * len(joints)
-    for j, p in enumerate(skeleton.parents):
-        r_local, t_local = local[j], joints[j] - local[j] @ joints[j]  # x -> R (x - c) + c
-        if p < 0:
-            rot[j], shift[j] = r_local, t_local
-        else:
-            rot[j], shift[j] = rot[p] @ r_local, rot[p] @ t_local + shift[p]
-    rot, shift = torch.stack(rot), torch.stack(shift)
+    rot, shift = joint_transforms(skeleton.parents, joints, rotvecs)
     moved = torch.einsum("jab,nb->nja", rot, verts) + shift[None]
     return (weights[:, :, None] * moved).sum(1)
+
+
+def surface_samples(verts, faces, weights, count, seed=0):
+    """Points of a surface drawn in proportion to area (fixed seed), each standing for an equal share of it:
+    verts (N, 3), faces (F, 3), skinning weights (N, J) -> centres (S, 3), unit normals (S, 3), the share
+    (float), their skinning weights (S, J) (their face's vertices' mean)."""
+    vectors = np.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]])
+    areas = 0.5 * np.linalg.norm(vectors, axis=1)
+    pick = np.random.default_rng(seed).choice(len(faces), count, p=areas / areas.sum())
+    normals = vectors[pick] / np.maximum(2 * areas[pick], 1e-300)[:, None]
+    return (verts[faces[pick]].mean(1), normals, float(areas.sum() / count), weights[faces[pick]].mean(1))
 
 
 def _directions():
@@ -123,40 +167,47 @@ def _turning(a, b):
     return axis / np.linalg.norm(axis) * math.acos(cos)
 
 
-def searched_joints(skeleton, template):
-    """The joints whose direction the discrete search tries (a wide range, not the root), heaviest subtree
-    first, and the rest direction (3,) of each: from its centre to its subtree's skinned centroid."""
+def searched_joints(skeleton, template, faces, roots=False, share=0.05):
+    """The joints whose direction the discrete search tries, heaviest subtree first, and the rest direction
+    (3,) of each (from its centre to its subtree's skinned centroid): not the root, a wide range (90 degrees
+    or more), a subtree of at least ``share`` of the surface (template (N, 3), faces (F, 3): a limb, not a
+    hand); ``roots``: only those whose parent is not searched (an upper arm, a thigh)."""
     n_joints = len(skeleton.joints)
     subtree = np.eye(n_joints, dtype=bool)
     for j in range(n_joints - 1, 0, -1):  # parents come before their children
         p = skeleton.parents[j]
         if p >= 0:
             subtree[p] |= subtree[j]
-    out = []
+    corners = template[faces]
+    areas = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    vertex_area = np.bincount(faces.ravel(), np.repeat(areas / 3, 3), minlength=len(template))
+    total = vertex_area.sum()
+    out = {}
     for j in range(n_joints):
-        if skeleton.parents[j] < 0 or np.ptp(skeleton.limits[j], axis=1).max() < math.radians(90):
-            continue
-        mass = skeleton.weights[:, subtree[j]].sum(1)
-        if mass.sum() <= 0:
+        mass = vertex_area * skeleton.weights[:, subtree[j]].sum(1)
+        if (skeleton.parents[j] < 0 or np.ptp(skeleton.limits[j], axis=1).max() < math.radians(90)
+                or mass.sum() < share * total):
             continue
         arm = (mass[:, None] * template).sum(0) / mass.sum() - skeleton.joints[j]
         if np.linalg.norm(arm) > 1e-9:
-            out.append((float(mass.sum()), j, arm / np.linalg.norm(arm)))
-    return [(j, arm) for _, j, arm in sorted(out, key=lambda item: -item[0])]
+            out[j] = (float(mass.sum()), arm / np.linalg.norm(arm))
+    if roots:
+        out = {j: v for j, v in out.items() if skeleton.parents[j] not in out}
+    return [(j, arm) for j, (_, arm) in sorted(out.items(), key=lambda item: -item[1][0])]
 
 
-def direction_search(objective, x0, skeleton, template, passes=2):
-    """Joint by joint (``searched_joints``), the rotation of its rest direction onto each of 26 directions
-    within the joint's range, kept where the objective (of the variables x (n,) tensor) is lowest; ``passes``
-    sweeps: -> variables (n,) numpy."""
+def direction_search(objective, x0, skeleton, template, faces, passes=1, directions=True, roots=False):
+    """Joint by joint (``searched_joints``; ``roots``: the limbs' roots only), its rotation set to each
+    candidate and kept where the objective (of the variables x (n,) tensor) is lowest: the rotations taking
+    its rest direction onto each of 26 directions (``directions``) and its rotations in the pose library,
+    clipped into its range; ``passes`` sweeps: -> variables (n,) numpy."""
     x = np.array(x0, dtype=np.float64)
     best = float(objective(torch.as_tensor(x)))
     for _ in range(passes):
-        for j, arm in searched_joints(skeleton, template):
-            for d in _directions():
-                turn = _turning(arm, d)
-                if not skeleton.within(j, turn):
-                    continue
+        for j, arm in searched_joints(skeleton, template, faces, roots):
+            lo, hi = skeleton.limits[j, :, 0], skeleton.limits[j, :, 1]
+            turns = ([_turning(arm, d) for d in _directions()] if directions else []) + list(skeleton.library[:, j])
+            for turn in np.unique(np.round(np.clip(turns, lo, hi), 6), axis=0):
                 trial = x.copy()
                 trial[3 * j:3 * j + 3] = turn
                 value = float(objective(torch.as_tensor(trial)))
@@ -189,10 +240,18 @@ class PoseProblem:
         self.skeleton, self.basis, self.settings, self.transform = skeleton, basis, settings, transform
         self.template = torch.as_tensor(basis.template, dtype=torch.float64)
         self.tensors = skeleton.tensors(torch.float64)
-        self.faces = torch.as_tensor(basis.faces, dtype=torch.long)
+        # the template as area samples whose centres and normals move with their blended joints: an evaluation
+        # costs a few thousand points, not the whole mesh
+        centres, normals, share, weights = surface_samples(basis.template, basis.faces, skeleton.weights,
+                                                           settings.samples)
+        as_t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
+        self.samples = (as_t(centres), as_t(normals), torch.full((len(centres),), share, dtype=torch.float64),
+                        as_t(weights))
         self.scan = (transform.apply(np.asarray(scan_verts, dtype=np.float64)), scan_faces, face_weights)
         self.center = surface_centroid(basis.template, basis.faces)[1]
-        self.shift = surface_centroid(*self.scan)[1] - self.center
+        self.shift = surface_centroid(*self.scan)[1] - self.center  # where the posed centroid goes
+        # the scan's size over the template's by their areas (a pose does not change them)
+        self.size = math.sqrt(surface_centroid(*self.scan)[0] / surface_centroid(basis.template, basis.faces)[0])
         self.n_joints, self.limit = len(skeleton.joints), math.log(settings.scale_limit)
         self.free = torch.as_tensor(skeleton.parents >= 0)  # the root's rotation is the similarity's
         self.sigmas = [s * basis.scale for s in settings.sigmas]
@@ -202,51 +261,82 @@ class PoseProblem:
         """Rotation vectors (J, 3) -> variables (n,) numpy, the centroids matched."""
         return np.concatenate([np.asarray(rotvecs).ravel(), np.zeros(3), self.shift, np.zeros(1)])
 
+    def posed_samples(self, rot):
+        """The area samples' centres (S, 3) and unit normals (S, 3) posed by joint rotations (J, 3) tensor
+        (linear blend skinning of the samples)."""
+        centres, normals, _, weights = self.samples
+        joint_rot, joint_shift = joint_transforms(self.skeleton.parents, self.tensors[0], rot)
+        blend = (weights @ joint_rot.reshape(self.n_joints, 9)).reshape(-1, 3, 3)
+        posed = (blend @ centres[:, :, None])[..., 0] + weights @ joint_shift
+        turned = (blend @ normals[:, :, None])[..., 0]
+        return posed, turned / turned.norm(dim=1, keepdim=True).clamp_min(1e-12)
+
     def rotations(self, x):
         """The joints' rotation vectors (J, 3) numpy of variables x (the root's zero)."""
         return np.asarray(x[:3 * self.n_joints]).reshape(self.n_joints, 3) * (self.skeleton.parents >= 0)[:, None]
 
-    def objective(self, sigma):
-        """objective(x (n,) tensor) -> scalar tensor at ``sigma`` (built once per sigma)."""
-        if sigma in self._objectives:
-            return self._objectives[sigma]
-        cell, settings, n = self.settings.cell * sigma, self.settings, self.n_joints
+    def objective(self, sigma, cell=None):
+        """objective(x (n,) tensor) -> scalar tensor at ``sigma``, both surfaces binned on cells of ``cell`` x
+        sigma (default the settings'; built once per sigma and cell)."""
+        key = (sigma, self.settings.cell if cell is None else cell)
+        if key in self._objectives:
+            return self._objectives[key]
+        cell, settings, n = key[1] * sigma, self.settings, self.n_joints
         scan = BinnedMeasureLoss(*coarse_measure(self.scan[0] - self.center, self.scan[1], self.scan[2], cell), sigma)
-        self_t, center_t = float(scan.self_t), torch.as_tensor(self.center, dtype=torch.float64)
-        limits = self.tensors[2]
+        self_t, limits, masses = float(scan.self_t), self.tensors[2], self.samples[2]
 
         def objective(x):
             rot = x[:3 * n].reshape(n, 3) * self.free[:, None]
-            posed = skin(self.skeleton, self.template, rot, self.tensors)
+            posed, turned = self.posed_samples(rot)
             scale = torch.exp(bounded_log_scale(x[-1:], self.limit))[0]
-            posed = scale * (posed - center_t) @ axis_angle_rotation(x[3 * n:3 * n + 3]).T + x[3 * n + 3:3 * n + 6]
+            r = axis_angle_rotation(x[3 * n:3 * n + 3])
+            # turned and scaled about the posed centroid, which x's translation places, the surface areas
+            # matched before x's scale: a raised arm moves the centroid and changes the second moments (the
+            # pre-alignment's scale), not the area, so every pose tried keeps the scan's centroid and size
+            scale = scale * self.size
+            posed = scale * (posed - posed.mean(0)) @ r.T + x[3 * n + 3:3 * n + 6]
             # binned afresh each evaluation (the cells follow the pose; the sums are differentiable)
-            gamma = scan(*cell_features(*varifold_measure(posed, self.faces), cell)[:2]) / self_t
+            gamma = scan(*cell_features(posed, turned @ r.T, masses * scale ** 2, cell)[:2]) / self_t
             excess = torch.relu(limits[..., 0] - rot) + torch.relu(rot - limits[..., 1])
             return gamma + settings.limit_weight * (excess ** 2).sum() + settings.prior * (rot ** 2).sum()
 
-        self._objectives[sigma] = objective
+        self._objectives[key] = objective
         return objective
 
-    def search(self):
-        """The starts (rest, the library's poses and, from the best of them, the joints' directions searched)
-        scored at the coarse sigma: -> [(score, start index, variables)], best first (index -1: rest, the
-        library's size: the direction search's)."""
-        coarse, library = self.objective(self.sigmas[0]), self.skeleton.library
+    def starts(self):
+        """Rest and the library's poses scored at the coarse sigma: -> (score, index: -1 rest, else the
+        library's, variables) of the best."""
+        coarse, library = self.objective(self.sigmas[self.settings.search_sigma]), self.skeleton.library
         starts = [self.variables(r) for r in np.concatenate([np.zeros((1, self.n_joints, 3)), library])]
         with torch.no_grad():
             scores = [float(coarse(torch.as_tensor(x))) for x in starts]
+        best = int(np.argmin(scores))
+        return scores[best], best - 1, starts[best]
+
+    def search(self, x):
+        """Each joint's direction searched at the coarse sigma from variables x (``starts``), the alignment and
+        size then settled for that pose (a person's size is known only roughly from the area, and a wrong one
+        makes a raised arm overshoot) -> (variables, objective there)."""
+        coarse = self.objective(self.sigmas[self.settings.search_sigma], self.settings.search_cell)
+        with torch.no_grad():
             # each limb's direction searched in turn: the coarse varifold has no slope toward an arm raised
             # overhead from one hanging down (the torso lies between)
-            starts.append(direction_search(coarse, starts[int(np.argmin(scores))], self.skeleton, self.basis.template))
-            scores.append(float(coarse(torch.as_tensor(starts[-1]))))
-        return sorted(((score, k - 1, x) for k, (score, x) in enumerate(zip(scores, starts))), key=lambda t: t[0])
+            x = direction_search(coarse, x, self.skeleton, self.basis.template, self.basis.faces)
+        return self.refine(x, [self.sigmas[self.settings.search_sigma]], max_iter=20)
 
-    def refine(self, x, sigmas, monitor=None):
-        """L-BFGS from variables x at each of ``sigmas`` in turn -> (variables, objective at the last)."""
+    def search_finely(self, x):
+        """The limbs' roots (an upper arm, a thigh) searched again at the finest sigma from variables x: at a
+        coarser one both arms overhead and one folded by the head look alike -> variables."""
+        with torch.no_grad():
+            return direction_search(self.objective(self.sigmas[-1], self.settings.search_cell), x, self.skeleton,
+                                    self.basis.template, self.basis.faces, roots=True)
+
+    def refine(self, x, sigmas, monitor=None, max_iter=None):
+        """L-BFGS from variables x at each of ``sigmas`` in turn (at most ``max_iter`` steps each, default the
+        settings') -> (variables, objective at the last)."""
         value = None
         for sigma in sigmas:
-            x, value, _ = minimize_lbfgs(self.objective(sigma), x, monitor, max_iter=self.settings.max_iter,
+            x, value, _ = minimize_lbfgs(self.objective(sigma), x, monitor, max_iter=max_iter or self.settings.max_iter,
                                          gtol=1e-9, ftol=1e-10)
         return x, value
 
@@ -255,37 +345,48 @@ class PoseProblem:
         n, rot = self.n_joints, self.rotations(x)
         with torch.no_grad():
             posed = skin(self.skeleton, self.template, torch.as_tensor(rot), self.tensors).numpy()
-        scale = math.exp(float(bounded_log_scale(float(x[-1]), self.limit)))
+            samples = self.posed_samples(torch.as_tensor(rot))[0].numpy()
+        middle = samples.mean(0)
+        scale = math.exp(float(bounded_log_scale(float(x[-1]), self.limit))) * self.size
         r = axis_angle_rotation(x[3 * n:3 * n + 3])
-        # the template moved by x -> s R (x - c) + tau + c; the scan moves by the inverse instead
-        move = Similarity(r, scale, x[3 * n + 3:3 * n + 6] + self.center - scale * r @ self.center)
+        # the posed template moved by y -> s R (y - m) + tau + c (m its samples' centroid, c the template's:
+        # the scan's cells are about c); the scan moves by the inverse instead
+        move = Similarity(r, scale, x[3 * n + 3:3 * n + 6] + self.center - scale * r @ middle)
         return PoseFit(rot, move.inverse().compose(self.transform), posed, float(score), start)
 
 
 def fit_pose(skeleton, basis, scan_verts, scan_faces, transforms, settings, face_weights=None, monitor=None):
     """The skeleton's pose and a similarity fitted to a scan (M, 3), (G, 3) from the best of candidate
     alignments ``transforms`` [Similarity scan -> template frame], as ``settings`` (a
-    ``config.ArticulatedFit``) says: every alignment's starts searched at the coarse sigma, the best
-    ``settings.starts`` of all fitted there, the best of those at the finer sigmas -> PoseFit."""
+    ``config.ArticulatedFit``) says: from every alignment's best start (rest or the library's) the joints'
+    directions searched at the coarse sigma (``PoseProblem.search``); the ``settings.searched`` that fit best
+    there searched finely and fitted at every sigma in turn; the fit that ends lowest at the finest sigma
+    -> PoseFit, or None when rest, at the alignment it fits best, is a better start than every pose of the
+    library (a body near rest, which the latent levels find on their own: the search would only cost time)."""
     problems = [PoseProblem(skeleton, basis, scan_verts, scan_faces, t, settings, face_weights) for t in transforms]
-    found = []
-    for problem in problems:
+    starts = [(*p.starts(), p) for p in problems]
+    if len(skeleton.library) and min(starts, key=lambda s: s[0])[1] < 0:
+        return None
+    searched = []
+    for _, start, x, problem in starts:
         if monitor is not None:
             monitor.check()
-        found += [(score, start, x, problem) for score, start, x in problem.search()]
+        searched.append((*problem.search(x)[::-1], start, problem))  # (value, x, start, problem)
     fits = []
-    for _, start, x, problem in sorted(found, key=lambda f: f[0])[:settings.starts]:
-        x, value = problem.refine(x, problem.sigmas[:1], monitor)
+    for _, x, start, problem in sorted(searched, key=lambda f: f[0])[:settings.searched]:
+        x, value = problem.refine(problem.search_finely(x), problem.sigmas, monitor)
         fits.append((value, start, x, problem))
     value, start, x, problem = min(fits, key=lambda f: f[0])
-    x, value = problem.refine(x, problem.sigmas[1:], monitor)
     return problem.result(x, value, start)
 
 
 def articulated_start(basis, skeleton, scan_verts, scan_faces, transforms, settings, face_weights=None,
                       monitor=None):
-    """The code (P,) and alignment a registration starts from after the articulated fit (``fit_pose``) from
-    candidate alignments [Similarity], and the fit: -> (code, Similarity, PoseFit)."""
+    """The code (P,) and alignment a registration may start from after the articulated fit (``fit_pose``) from
+    candidate alignments [Similarity], and the fit: -> (code, Similarity, PoseFit), or None when the scan is
+    near rest."""
     fit = fit_pose(skeleton, basis, scan_verts, scan_faces, transforms, settings, face_weights, monitor)
+    if fit is None:
+        return None
     code = project_to_basis(basis, fit.posed, ridge=settings.projection_ridge)[0]
     return code, fit.transform, fit

@@ -126,23 +126,29 @@ class ArticulatedFit:
     """The articulated pre-fit of a basis with a skeleton (``articulated.fit_pose``).
 
     enabled: run it (a basis without a skeleton never does); alignments: the best pre-alignment candidates
-    it starts from (the one that fits best is kept); sigmas: of its coarse then finer varifold,
-    relative to the basis' scale; cell: both surfaces' cells in units of sigma; starts: the best-scored starts (rest and the skeleton's pose library) fitted;
-    max_iter: L-BFGS steps per sigma; limit_weight: of the penalty on rotations past a joint's range;
+    it starts from, of which the ``searched`` whose best start (rest or the library's) scores lowest are
+    searched and fitted (the one that fits best is kept); sigmas: of its coarse then finer varifold,
+    relative to the basis' scale (the alignments are compared at the last); search_sigma: the index of
+    the sigma the starts are first searched at (a coarser one cannot tell arms overhead from a body upside
+    down, or from another body's shape); cell, search_cell: both surfaces' cells in units of sigma, in the
+    fits and in the (discrete) searches; samples: area samples of the template that stand for it in the fit; max_iter: L-BFGS steps per sigma; limit_weight: of the penalty on rotations past a joint's range;
     prior: of the squared rotations (rest is preferred where the scan cannot tell); scale_limit: the
-    largest change of the alignment's scale; projection_ridge: of the posed template's projection into
+    largest change of the posed template's scale from the one that matches the scan's area; projection_ridge: of the posed template's projection into
     the latent space (``latent.project_to_basis``).
     """
 
     enabled: bool = True
-    alignments: int = 3
-    sigmas: tuple = (0.3, 0.15, 0.07)
+    alignments: int = 4
+    searched: int = 2
+    sigmas: tuple = (0.15, 0.07)
+    search_sigma: int = 0
     cell: float = 0.5
-    starts: int = 2
-    max_iter: int = 60
+    search_cell: float = 0.5
+    samples: int = 1500
+    max_iter: int = 40
     limit_weight: float = 10.0
     prior: float = 1e-4
-    scale_limit: float = 1.15
+    scale_limit: float = 1.3
     projection_ridge: float = 5e-3
 
 

@@ -146,15 +146,20 @@ def register(basis, scan_verts, scan_faces, config=None, *, landmarks=None, scan
     skeleton = Skeleton.of_basis(basis) if config.prealign and config.articulated.enabled else None
     articulated = None
     if skeleton is not None and init_code is None:
-        # the skeleton posed from the best few alignments: the first fit starts from the best pose's code
+        # the skeleton posed from the best few alignments: the first fit starts from its pose's code (a scan
+        # near rest skips the search; a poor fit is retried from the pre-alignment's candidates)
         monitor.report(lo, "registration: posing the skeleton")
         t0 = time.perf_counter()
         tried = candidates[:config.articulated.alignments]
-        code, transform, pose = articulated_start(basis, skeleton, sv, sf, [c.transform for c in tried],
-                                                  config.articulated, face_w, monitor)
-        screened = [Alignment(tried[0].score, transform, None, code)]
-        candidates = screened + candidates
-        articulated = {"score": pose.score, "start": pose.start, "seconds": time.perf_counter() - t0}
+        found = articulated_start(basis, skeleton, sv, sf, [c.transform for c in tried], config.articulated, face_w,
+                                  monitor)
+        articulated = {"score": None, "start": -1, "seconds": None}
+        if found is not None:
+            code, transform, pose = found
+            posed = Alignment(tried[0].score, transform, None, code)
+            screened, candidates = [posed], [posed] + candidates
+            articulated.update(score=pose.score, start=pose.start)
+        articulated["seconds"] = time.perf_counter() - t0
     fit = _fit(config, state, screened)
     retried = 0
     if fit.poor and config.prealign and config.retry:

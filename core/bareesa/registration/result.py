@@ -22,8 +22,9 @@ class RegistrationResult:
     it is far above what the basis reaches on its own scans (``basis.fit_check``; None uncalibrated);
     normal_spread the scan's (``problem.normal_spread``), which chose the finest kernel of "auto";
     retried_alignments how many other alignments a poor fit was tried again from (0: none; the result
-    is the better of the two tries); articulated the skeleton's pre-fit when it ran {score, start (-1 rest,
-    else the pose library's index), seconds}, else None.
+    is the better of the two tries); articulated the skeleton's pre-fit when the basis has a skeleton
+    {score (None: the scan is near rest, no pose searched), start (-1 rest, else the pose library's index),
+    seconds}, else None.
     """
 
     code: np.ndarray
