@@ -69,7 +69,8 @@ SHAPE_COMPONENTS = 40
 POSE_PROTOTYPES = 32
 #: Static postures each motion performer takes besides the motions (``bases/build/poses.py``, seeded by
 #: POSTURE_SEED + the performer's index, never the benchmarks' seeds): random anatomically valid ones and
-#: variants of every named family (arms overhead, tree pose, deep squat, sitting, kneeling, ...)
+#: variants of every named family (arms overhead, tree pose, deep squat, sitting, kneeling, ...); see
+#: docs/decisions/103-human-pose-space.md
 RANDOM_POSTURES = 30
 FAMILY_VARIANTS = 3
 POSTURE_SEED = 1000
@@ -549,8 +550,10 @@ def generate(log=print, test=True, motion_identities=MOTION_IDENTITIES, n_train=
     for i, p in enumerate(performers):
         rng = np.random.default_rng(POSTURE_SEED + i)
         kept = [human.rest(p)[0]]
-        for draw, wanted, crossings in ((lambda: random_pose(rng), RANDOM_POSTURES, RANDOM_CROSSINGS),) + tuple(
-                (lambda name=name: pose_family(name, rng), FAMILY_VARIANTS, FAMILY_CROSSINGS) for name in POSE_FAMILIES):
+        draws = [(lambda: random_pose(rng), RANDOM_POSTURES, RANDOM_CROSSINGS)]
+        draws += [(lambda name=name: pose_family(name, rng), FAMILY_VARIANTS, FAMILY_CROSSINGS)
+                  for name in POSE_FAMILIES]
+        for draw, wanted, crossings in draws:
             found = 0
             for _ in range(4):  # batches of draws until enough cross nothing but themselves
                 batch = [draw() for _ in range(wanted - found)]

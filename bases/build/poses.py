@@ -257,22 +257,22 @@ def _split(total, bones, k):
     return [total * s / sum(span) for s in span]
 
 
-def trunk(flexion=0.0, lateral=0.0, twist=0.0):
-    """Thoracolumbar spine: ``lateral`` > 0 bends to the left, ``twist`` > 0 turns the chest to the left."""
+def _spine(bones, flexion, lateral, turn):
+    """Two spinal bones turned, bent sideways and flexed by totals split between them by their ranges."""
     r = {}
-    for b, t, s, f in zip(("spine", "chest"), _split(twist, ("spine", "chest"), 0),
-                          _split(lateral, ("spine", "chest"), 1), _split(flexion, ("spine", "chest"), 2)):
+    for b, t, s, f in zip(bones, _split(turn, bones, 0), _split(lateral, bones, 1), _split(flexion, bones, 2)):
         _put(r, b, t, s, f)
     return r
+
+
+def trunk(flexion=0.0, lateral=0.0, twist=0.0):
+    """Thoracolumbar spine: ``lateral`` > 0 bends to the left, ``twist`` > 0 turns the chest to the left."""
+    return _spine(("spine", "chest"), flexion, lateral, twist)
 
 
 def head(flexion=0.0, lateral=0.0, rotation=0.0):
     """Cervical spine: ``flexion`` > 0 nods forward, ``lateral`` > 0 tilts left, ``rotation`` > 0 looks left."""
-    r = {}
-    for b, t, s, f in zip(("neck", "head"), _split(rotation, ("neck", "head"), 0),
-                          _split(lateral, ("neck", "head"), 1), _split(flexion, ("neck", "head"), 2)):
-        _put(r, b, t, s, f)
-    return r
+    return _spine(("neck", "head"), flexion, lateral, rotation)
 
 
 def _other(side):

@@ -7,7 +7,8 @@ skinning weights, optionally a library of typical poses as joint rotations). Bef
 template is posed by linear blend skinning from rest and from the library's poses; the best starts are
 fitted (every joint's rotation and a similarity) to the scan by L-BFGS on a coarse varifold, with a soft
 penalty on rotations past each joint's range, coarse then finer; the best fit's skinned template is
-projected into the latent space (``latent.project_to_basis``) and the registration starts from that code.
+projected into the latent space (``latent.project_to_basis``) and the registration starts from that code
+(docs/decisions/021-articulated-prefit.md).
 """
 
 import math
@@ -55,7 +56,8 @@ class Skeleton:
         parents = np.asarray(extras["skeleton_parents"], dtype=np.int64).ravel()
         weights = np.asarray(extras["skinning_weights"], dtype=np.float64)
         n_joints = len(joints)
-        if (joints.shape != (n_joints, 3) or parents.shape != (n_joints,) or weights.shape != (len(basis.template), n_joints)
+        if (joints.shape != (n_joints, 3) or parents.shape != (n_joints,)
+                or weights.shape != (len(basis.template), n_joints)
                 or not (parents < np.arange(n_joints)).all() or not np.isfinite(weights).all()):
             return None
         weights = weights / np.maximum(weights.sum(1, keepdims=True), 1e-12)
@@ -105,28 +107,29 @@ def _depth_levels(parents):
 
 
 def joint_transforms(parents, joints, rotvecs):
-    """Each joint's rigid motion x -> R x + t from rotation vectors (J, 3) tensor (each about its joint centre
-    joints (J, 3), in the rest frame's axes, after its parent's): -> (R (J, 3, 3), t (J, 3)). One batched
-    step per depth of the tree (a few dozen tensor operations, not a few per joint)."""
-    local = batch_rotations(rotvecs)
+    """Each joint's rigid motion x -> R x + t from rotation vectors (..., J, 3) tensor (each about its joint
+    centre joints (J, 3), in the rest frame's axes, after its parent's): -> (R (..., J, 3, 3), t (..., J, 3)).
+    One batched step per depth of the tree (a few dozen tensor operations, not a few per joint)."""
+    batch = rotvecs.shape[:-2]
+    local = batch_rotations(rotvecs.reshape(-1, 3)).reshape(*batch, -1, 3, 3)
     local_shift = joints - (local @ joints[:, :, None])[..., 0]  # x -> R (x - c) + c
     order, rots, shifts = [], [], []
-    position = np.empty(len(parents), dtype=np.int64)  # each joint's row in the stacked results
+    position = np.empty(len(parents), dtype=np.int64)  # each joint's column in the stacked results
     for idx, par in _depth_levels(parents):
-        r_local, t_local = local[idx], local_shift[idx]
+        r_local, t_local = local[..., idx, :, :], local_shift[..., idx, :]
         if par[0] < 0:
             r, t = r_local, t_local
         else:
-            rows = torch.as_tensor(position[par])
-            r_parent, t_parent = torch.cat(rots)[rows], torch.cat(shifts)[rows]
+            cols = torch.as_tensor(position[par])
+            r_parent, t_parent = torch.cat(rots, -3)[..., cols, :, :], torch.cat(shifts, -2)[..., cols, :]
             r = r_parent @ r_local
-            t = (r_parent @ t_local[:, :, None])[..., 0] + t_parent
+            t = (r_parent @ t_local[..., None])[..., 0] + t_parent
         position[idx] = len(order) + np.arange(len(idx))
         order += list(idx)
         rots.append(r)
         shifts.append(t)
     back = torch.as_tensor(np.argsort(order))
-    return torch.cat(rots)[back], torch.cat(shifts)[back]
+    return torch.cat(rots, -3)[..., back, :, :], torch.cat(shifts, -2)[..., back, :]
 
 
 def skin(skeleton, verts, rotvecs, tensors=None):
@@ -196,23 +199,27 @@ def searched_joints(skeleton, template, faces, roots=False, share=0.05):
     return [(j, arm) for j, (_, arm) in sorted(out.items(), key=lambda item: -item[1][0])]
 
 
-def direction_search(objective, x0, skeleton, template, faces, passes=1, directions=True, roots=False):
+def direction_search(problem, sigma, x0, passes=1, roots=False):
     """Joint by joint (``searched_joints``; ``roots``: the limbs' roots only), its rotation set to each
-    candidate and kept where the objective (of the variables x (n,) tensor) is lowest: the rotations taking
-    its rest direction onto each of 26 directions (``directions``) and its rotations in the pose library,
-    clipped into its range; ``passes`` sweeps: -> variables (n,) numpy."""
+    candidate and kept where ``problem.values`` at ``sigma`` is lowest: the rotations taking its rest
+    direction onto each of 26 directions and its rotations in the pose library, clipped into its range;
+    ``passes`` sweeps: -> variables (n,) numpy."""
+    skeleton, basis = problem.skeleton, problem.basis
     x = np.array(x0, dtype=np.float64)
-    best = float(objective(torch.as_tensor(x)))
+    rot = problem.rotations(x)
+    best = float(problem.values(sigma, x, rot[None])[0])
     for _ in range(passes):
-        for j, arm in searched_joints(skeleton, template, faces, roots):
+        for j, arm in searched_joints(skeleton, basis.template, basis.faces, roots):
             lo, hi = skeleton.limits[j, :, 0], skeleton.limits[j, :, 1]
-            turns = ([_turning(arm, d) for d in _directions()] if directions else []) + list(skeleton.library[:, j])
-            for turn in np.unique(np.round(np.clip(turns, lo, hi), 6), axis=0):
-                trial = x.copy()
-                trial[3 * j:3 * j + 3] = turn
-                value = float(objective(torch.as_tensor(trial)))
-                if value < best:
-                    best, x = value, trial
+            turns = [_turning(arm, d) for d in _directions()] + list(skeleton.library[:, j])
+            turns = np.unique(np.round(np.clip(turns, lo, hi), 6), axis=0)
+            trials = np.repeat(rot[None], len(turns), 0)
+            trials[:, j] = turns
+            values = problem.values(sigma, x, trials)
+            k = int(np.argmin(values))
+            if values[k] < best:
+                best, rot = float(values[k]), trials[k]
+    x[:3 * len(rot)] = rot.ravel()
     return x
 
 
@@ -262,14 +269,64 @@ class PoseProblem:
         return np.concatenate([np.asarray(rotvecs).ravel(), np.zeros(3), self.shift, np.zeros(1)])
 
     def posed_samples(self, rot):
-        """The area samples' centres (S, 3) and unit normals (S, 3) posed by joint rotations (J, 3) tensor
-        (linear blend skinning of the samples)."""
+        """The area samples' centres (..., S, 3) and unit normals (..., S, 3) posed by joint rotations
+        (..., J, 3) tensor (linear blend skinning of the samples)."""
         centres, normals, _, weights = self.samples
         joint_rot, joint_shift = joint_transforms(self.skeleton.parents, self.tensors[0], rot)
-        blend = (weights @ joint_rot.reshape(self.n_joints, 9)).reshape(-1, 3, 3)
+        batch = rot.shape[:-2]
+        blend = (weights @ joint_rot.reshape(*batch, self.n_joints, 9)).reshape(*batch, -1, 3, 3)
         posed = (blend @ centres[:, :, None])[..., 0] + weights @ joint_shift
         turned = (blend @ normals[:, :, None])[..., 0]
-        return posed, turned / turned.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        return posed, turned / turned.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+    def values(self, sigma, x, rotvecs):
+        """The objective at ``sigma`` (cells of ``search_cell``) of variables x (n,) numpy with their joint
+        rotations replaced by each of rotvecs (T, J, 3) -> (T,) numpy: one batched posing and binning for all
+        (the discrete searches try dozens of rotations a joint)."""
+        cell_size = self.settings.search_cell * sigma
+        key = ("batch", sigma, cell_size)
+        if key not in self._objectives:
+            scan = BinnedMeasureLoss(*coarse_measure(self.scan[0] - self.center, self.scan[1], self.scan[2],
+                                                     cell_size), sigma)
+            self._objectives[key] = (scan.target, float(scan.self_t))
+        (target_x, target_f), self_t = self._objectives[key]
+        n, count = self.n_joints, len(rotvecs)
+        with torch.no_grad():
+            rot = torch.as_tensor(rotvecs, dtype=torch.float64) * self.free[:, None]
+            posed, turned = self.posed_samples(rot)  # (T, S, 3)
+            scale = math.exp(float(bounded_log_scale(float(x[-1]), self.limit))) * self.size
+            r = axis_angle_rotation(torch.as_tensor(x[3 * n:3 * n + 3]))
+            posed = scale * (posed - posed.mean(1, keepdim=True)) @ r.T + torch.as_tensor(x[3 * n + 3:3 * n + 6])
+            turned = turned @ r.T
+            # every trial's samples binned at once: cells keyed by (trial, cell)
+            ijk = torch.floor(posed / cell_size).long()
+            ijk = ijk - ijk.reshape(-1, 3).min(0).values
+            dims = ijk.reshape(-1, 3).max(0).values + 1
+            trial = torch.arange(count)[:, None].expand(-1, posed.shape[1])
+            cellkey = ((trial * dims[0] + ijk[..., 0]) * dims[1] + ijk[..., 1]) * dims[2] + ijk[..., 2]
+            keys, groups = torch.unique(cellkey.reshape(-1), return_inverse=True)
+            mass = torch.full((posed.shape[1],), float(self.samples[2][0]) * scale ** 2, dtype=torch.float64)
+            feats = (mass[:, None] * (turned[..., :, None] * turned[..., None, :]).reshape(count, -1, 9)).reshape(-1, 9)
+            weight = mass.repeat(count)
+            total = weight.new_zeros(len(keys)).index_add(0, groups, weight)
+            centroid = posed.new_zeros(len(keys), 3).index_add(0, groups, weight[:, None] * posed.reshape(-1, 3))
+            centroid = centroid / total[:, None]
+            feature = feats.new_zeros(len(keys), 9).index_add(0, groups, feats)
+            owner = keys // (dims[0] * dims[1] * dims[2])
+            sizes = torch.bincount(owner, minlength=count)
+            slot = torch.arange(len(keys)) - torch.repeat_interleave(torch.cumsum(sizes, 0) - sizes, sizes)
+            width = int(sizes.max())
+            cx = posed.new_zeros(count, width, 3).index_put_((owner, slot), centroid)
+            cf = posed.new_zeros(count, width, 9).index_put_((owner, slot), feature)  # empty slots weigh 0
+            g = 1.0 / sigma ** 2
+            own = torch.exp(-g * torch.cdist(cx, cx) ** 2) * (cf @ cf.transpose(1, 2))
+            cross = torch.exp(-g * torch.cdist(cx, target_x[None]) ** 2) * (cf @ target_f.T[None])
+            gamma = (own.sum((1, 2)) - 2 * cross.sum((1, 2)) + self_t) / self_t
+            limits = self.tensors[2]
+            excess = torch.relu(limits[..., 0] - rot) + torch.relu(rot - limits[..., 1])
+            value = gamma + self.settings.limit_weight * (excess ** 2).sum((1, 2)) + self.settings.prior * (
+                rot ** 2).sum((1, 2))
+        return value.numpy()
 
     def rotations(self, x):
         """The joints' rotation vectors (J, 3) numpy of variables x (the root's zero)."""
@@ -317,19 +374,15 @@ class PoseProblem:
         """Each joint's direction searched at the coarse sigma from variables x (``starts``), the alignment and
         size then settled for that pose (a person's size is known only roughly from the area, and a wrong one
         makes a raised arm overshoot) -> (variables, objective there)."""
-        coarse = self.objective(self.sigmas[self.settings.search_sigma], self.settings.search_cell)
-        with torch.no_grad():
-            # each limb's direction searched in turn: the coarse varifold has no slope toward an arm raised
-            # overhead from one hanging down (the torso lies between)
-            x = direction_search(coarse, x, self.skeleton, self.basis.template, self.basis.faces)
-        return self.refine(x, [self.sigmas[self.settings.search_sigma]], max_iter=20)
+        # each limb's direction searched in turn: the coarse varifold has no slope toward an arm raised
+        # overhead from one hanging down (the torso lies between)
+        x = direction_search(self, self.sigmas[self.settings.search_sigma], x)
+        return self.refine(x, [self.sigmas[self.settings.search_sigma]], max_iter=self.settings.settle_iter)
 
     def search_finely(self, x):
         """The limbs' roots (an upper arm, a thigh) searched again at the finest sigma from variables x: at a
         coarser one both arms overhead and one folded by the head look alike -> variables."""
-        with torch.no_grad():
-            return direction_search(self.objective(self.sigmas[-1], self.settings.search_cell), x, self.skeleton,
-                                    self.basis.template, self.basis.faces, roots=True)
+        return direction_search(self, self.sigmas[-1], x, roots=True)
 
     def refine(self, x, sigmas, monitor=None, max_iter=None):
         """L-BFGS from variables x at each of ``sigmas`` in turn (at most ``max_iter`` steps each, default the

@@ -4,7 +4,8 @@ A configuration is defaulted from the basis (its card's schedule, shape metric a
 ``"registration"`` overrides, ``RegistrationConfig.from_basis``) and overridden in one place: the
 API (``register(..., config=...)`` or keywords), the CLI (``--set KEY=VALUE``, ``--config FILE``) and
 the add-on's panel all build a variant with ``with_overrides``. Keys of nested settings are dotted:
-``"poses.finalists"``, ``"solve.memory"``. Why each default is what it is: docs/decisions/ (005-008 for the solve, screening, retries and poses).
+``"poses.finalists"``, ``"solve.memory"``. Why each default is what it is: docs/decisions/ (005-008 for the
+solve, screening, retries and poses, 021 for the articulated pre-fit).
 """
 
 import json
@@ -131,10 +132,12 @@ class ArticulatedFit:
     relative to the basis' scale (the alignments are compared at the last); search_sigma: the index of
     the sigma the starts are first searched at (a coarser one cannot tell arms overhead from a body upside
     down, or from another body's shape); cell, search_cell: both surfaces' cells in units of sigma, in the
-    fits and in the (discrete) searches; samples: area samples of the template that stand for it in the fit; max_iter: L-BFGS steps per sigma; limit_weight: of the penalty on rotations past a joint's range;
+    fits and in the (discrete) searches; samples: area samples of the template that stand for it in the
+    fit; settle_iter: L-BFGS steps settling the alignment and size after the coarse search; max_iter:
+    L-BFGS steps per sigma of the fits; limit_weight: of the penalty on rotations past a joint's range;
     prior: of the squared rotations (rest is preferred where the scan cannot tell); scale_limit: the
-    largest change of the posed template's scale from the one that matches the scan's area; projection_ridge: of the posed template's projection into
-    the latent space (``latent.project_to_basis``).
+    largest change of the posed template's scale from the one that matches the scan's area;
+    projection_ridge: of the posed template's projection into the latent space (``latent.project_to_basis``).
     """
 
     enabled: bool = True
@@ -145,7 +148,8 @@ class ArticulatedFit:
     cell: float = 0.5
     search_cell: float = 0.5
     samples: int = 1500
-    max_iter: int = 40
+    settle_iter: int = 10
+    max_iter: int = 30
     limit_weight: float = 10.0
     prior: float = 1e-4
     scale_limit: float = 1.3
