@@ -23,12 +23,11 @@ from ..transforms import Similarity, axis_angle_rotation
 from ..varifold import BinnedMeasureLoss, cell_features
 from .prealign import bounded_log_scale, coarse_measure, surface_centroid
 
-#: ``Basis.extras`` keys of a skeleton (``Skeleton.of_basis``)
+#: ``Basis.extras`` keys of a skeleton (``Skeleton.of_basis``); optional beside them: "skeleton_names" (one
+#: "|"-joined string), "skeleton_limits" (J, 3, 2) each joint's range (the least and largest rotation-vector
+#: component about each rest axis, radians) and "skeleton_pose_library" (K, J, 3) rotation vectors of poses
+#: tried as starts
 SKELETON_KEYS = ("skeleton_joints", "skeleton_parents", "skinning_weights")
-#: ... and the optional ones: joint names (as a "|"-joined string array), each joint's range (J, 3, 2): the
-#: least and largest rotation-vector component about each rest axis (radians), and a library of poses
-#: (K, J, 3) rotation vectors tried as starts
-SKELETON_OPTIONAL = ("skeleton_names", "skeleton_limits", "skeleton_pose_library")
 
 
 @dataclass(frozen=True, eq=False)
