@@ -2,7 +2,7 @@
 
 Deterministic (fixed seeds, single-threaded torch); needs the ``bpy`` module and,
 for ``human``, the Anny body model (``pip install -e ".[bases]"``; Anny's first
-model build takes ~3 min and writes ~0.8 GB to ``ANNY_CACHE_DIR``). Each written
+model build takes minutes and writes its cache to ``ANNY_CACHE_DIR``). Each written
 basis then gets its derived constants (``store_derived``); ``--derived`` recomputes
 only those, in the bases already in the output folder.
 """

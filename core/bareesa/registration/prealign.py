@@ -76,8 +76,8 @@ def surface_moments(verts, faces, face_weights=None):
     a, total, center = _area_centroid(verts, faces, face_weights)
     q = p - center
     s = q.sum(1)
-    # int over a triangle of x x^T = A/12 (sum_i q_i q_i^T + s s^T), s = sum_i q_i (as matrix products:
-    # numpy's einsum of three operands took 10x as long, and a registration takes ~40 such moments)
+    # int over a triangle of x x^T = A/12 (sum_i q_i q_i^T + s s^T), s = sum_i q_i, as matrix products (an
+    # einsum of three operands is far slower, and a registration takes dozens of such moments)
     second = (q * a[:, None, None]).reshape(-1, 3).T @ q.reshape(-1, 3) + (s * a[:, None]).T @ s
     return float(total), center, second / (12.0 * total)
 
