@@ -104,7 +104,8 @@ def geodesic_rows(basis, truths, n_pairs, frames=9):
     for a, b in pairs:
         codes = project_to_basis(basis, np.stack([truths[a], truths[b]]))[0]
         found = path_between(basis, KnownCode(codes[0]), KnownCode(codes[1]), frames, Options())
-        share, counts = crossing_share(found.frames, basis.faces)
+        bodies = basis.template + np.tensordot(found.frames, basis.fields, axes=1)
+        share, counts = crossing_share(bodies, basis.faces)
         rows.append({"from": a, "to": b, "frames": frames, "crossing_frames": int(sum(c > 0 for c in counts)),
                      "ends_crossing": int((counts[0] > 0) + (counts[-1] > 0)), "max_pairs": int(max(counts))})
         print("  ".join(str(v) for v in rows[-1].values()), flush=True)
