@@ -75,6 +75,11 @@ def test_a_pose_never_in_training_registers_with_the_articulated_stage_and_not_w
     assert res.articulated is not None and res.articulated["seconds"] > 0
     assert np.linalg.norm(res.vertices - truth, axis=1).mean() < 0.1
     assert np.linalg.norm(res.vertices[foot] - truth[foot]) < 0.15  # the folded foot is where it is
+    # after the posed start only the levels no coarser than the articulated fit's sigmas run
+    kept = sum(level.sigma <= max(ArticulatedFit().sigmas) for level in SCHEDULE)
+    assert len(res.levels) == kept < len(SCHEDULE)
+    coarse = registration.register(basis, *scan, **{"articulated.coarse_levels": True})
+    assert len(coarse.levels) == len(SCHEDULE) and coarse.articulated["score"] is not None
     plain = registration.register(basis, *scan, **{"articulated.enabled": False})
     assert plain.articulated is None
     assert np.linalg.norm(plain.vertices - truth, axis=1).mean() > 3 * np.linalg.norm(res.vertices - truth, axis=1).mean()

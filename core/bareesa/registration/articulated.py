@@ -372,11 +372,15 @@ class PoseProblem:
     def search(self, x):
         """Each joint's direction searched at the coarse sigma from variables x (``starts``), the alignment and
         size then settled for that pose (a person's size is known only roughly from the area, and a wrong one
-        makes a raised arm overshoot) -> (variables, objective there)."""
+        makes a raised arm overshoot), or the start settled if that ends lower -> (variables, objective there)."""
         # each limb's direction searched in turn: the coarse varifold has no slope toward an arm raised
         # overhead from one hanging down (the torso lies between)
-        x = direction_search(self, self.sigmas[self.settings.search_sigma], x)
-        return self.refine(x, [self.sigmas[self.settings.search_sigma]], max_iter=self.settings.settle_iter)
+        coarse, settle = [self.sigmas[self.settings.search_sigma]], self.settings.settle_iter
+        found = self.refine(direction_search(self, coarse[0], x), coarse, max_iter=settle)
+        # the start settled as it is too: near a library pose (a crouch) the joint-by-joint search can
+        # leave it for a worse one
+        kept = self.refine(x, coarse, max_iter=settle)
+        return min(found, kept, key=lambda f: f[1])
 
     def search_finely(self, x):
         """The limbs' roots (an upper arm, a thigh) searched again at the finest sigma from variables x: at a
@@ -412,7 +416,8 @@ def fit_pose(skeleton, basis, scan_verts, scan_faces, transforms, settings, face
     alignments ``transforms`` [Similarity scan -> template frame], as ``settings`` (a
     ``config.ArticulatedFit``) says: from every alignment's best start (rest or the library's) the joints'
     directions searched at the coarse sigma (``PoseProblem.search``); the ``settings.searched`` that fit best
-    there searched finely and fitted at every sigma in turn; the fit that ends lowest at the finest sigma
+    there searched finely and fitted at every sigma in turn (the others too while the best scores above
+    ``settings.poor_score``); the fit that ends lowest at the finest sigma
     -> PoseFit, or None when rest, at the alignment it fits best, is a better start than every pose of the
     library (a body near rest, which the latent levels find on their own: the search would only cost time)."""
     problems = [PoseProblem(skeleton, basis, scan_verts, scan_faces, t, settings, face_weights) for t in transforms]
@@ -424,8 +429,12 @@ def fit_pose(skeleton, basis, scan_verts, scan_faces, transforms, settings, face
         if monitor is not None:
             monitor.check()
         searched.append((*problem.search(x)[::-1], start, problem))  # (value, x, start, problem)
-    fits = []
-    for _, x, start, problem in sorted(searched, key=lambda f: f[0])[:settings.searched]:
+    fits, ranked = [], sorted(searched, key=lambda f: f[0])
+    for k, (_, x, start, problem) in enumerate(ranked):
+        # the coarse search can rank a body turned the wrong way first: while the best fit is still poor,
+        # the other alignments are fitted too
+        if k >= settings.searched and min(f[0] for f in fits) <= settings.poor_score:
+            break
         x, value = problem.refine(problem.search_finely(x), problem.sigmas, monitor)
         fits.append((value, start, x, problem))
     value, start, x, problem = min(fits, key=lambda f: f[0])

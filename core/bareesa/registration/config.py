@@ -128,7 +128,8 @@ class ArticulatedFit:
 
     enabled: run it (a basis without a skeleton never does); alignments: the best pre-alignment candidates
     it starts from, of which the ``searched`` whose best start (rest or the library's) scores lowest are
-    searched and fitted (the one that fits best is kept); sigmas: of its coarse then finer varifold,
+    searched and fitted (the one that fits best is kept; the rest too while the best fit's score, its
+    finest varifold over the scan's self term, is above ``poor_score``); sigmas: of its coarse then finer varifold,
     relative to the basis' scale (the alignments are compared at the last); search_sigma: the index of
     the sigma the starts are first searched at (a coarser one cannot tell arms overhead from a body upside
     down, or from another body's shape); cell, search_cell: both surfaces' cells in units of sigma, in the
@@ -137,12 +138,16 @@ class ArticulatedFit:
     L-BFGS steps per sigma of the fits; limit_weight: of the penalty on rotations past a joint's range;
     prior: of the squared rotations (rest is preferred where the scan cannot tell); scale_limit: the
     largest change of the posed template's scale from the one that matches the scan's area;
-    projection_ridge: of the posed template's projection into the latent space (``latent.project_to_basis``).
+    projection_ridge: of the posed template's projection into the latent space (``latent.project_to_basis``);
+    coarse_levels: after an articulated start, also run the schedule's levels coarser than its coarsest
+    sigma, and the pose stage (off: their light data term pulls a far pose back toward rest, crossed arms
+    come undone; decision 021).
     """
 
     enabled: bool = True
     alignments: int = 4
     searched: int = 2
+    poor_score: float = 0.2
     sigmas: tuple = (0.15, 0.07)
     search_sigma: int = 0
     cell: float = 0.5
@@ -154,6 +159,7 @@ class ArticulatedFit:
     prior: float = 1e-4
     scale_limit: float = 1.3
     projection_ridge: float = 5e-3
+    coarse_levels: bool = False
 
 
 @dataclass(frozen=True)

@@ -160,7 +160,8 @@ def register(basis, scan_verts, scan_faces, config=None, *, landmarks=None, scan
             screened, candidates = [posed], [posed] + candidates
             articulated.update(score=pose.score, start=pose.start)
         articulated["seconds"] = time.perf_counter() - t0
-    fit = _fit(config, state, screened)
+    posed_start = articulated is not None and articulated["score"] is not None
+    fit = _fit(config, _after_pose(config, state) if posed_start else state, screened)
     retried = 0
     if fit.poor and config.prealign and config.retry:
         # a poor fit is most often the body turned the wrong way round: go again from the other alignments
@@ -212,6 +213,17 @@ def half_turns(basis):
         rotation = 2.0 * np.outer(axis, axis) - np.eye(3)
         out.append(Similarity(rotation, 1.0, center - rotation @ center))
     return out
+
+
+def _after_pose(config, state):
+    """The state the first fit solves in after an articulated start: the schedule's levels no coarser than
+    the articulated fit's coarsest sigma (the last one at least) and no pose stage, the fitted pose standing
+    in for the prototypes (unless ``articulated.coarse_levels``) -> RegistrationState."""
+    if config.articulated.coarse_levels:
+        return state
+    coarsest = max(config.articulated.sigmas)
+    first = next((k for k, level in enumerate(state.levels) if level.sigma <= coarsest), len(state.levels) - 1)
+    return replace(state, levels=state.levels[first:], kernels=state.kernels[first:], poses=None)
 
 
 def _start(path, poses, alignment):
