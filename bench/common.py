@@ -196,7 +196,7 @@ def write_results(bench, figures, tables=(), targets=None, *, variant="", labels
 
 
 def contact_sheet(path, meshes, titles, ncols=None, elev=15, azim=-60):
-    """Render meshes [(verts, faces)] side by side with matplotlib into a PNG."""
+    """Render meshes [(verts, faces) or None: a blank cell] side by side with matplotlib into a PNG."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -206,10 +206,13 @@ def contact_sheet(path, meshes, titles, ncols=None, elev=15, azim=-60):
     ncols = ncols or n
     nrows = (n + ncols - 1) // ncols
     fig = plt.figure(figsize=(2.6 * ncols, 2.8 * nrows))
-    allv = np.concatenate([v for v, _ in meshes])
+    allv = np.concatenate([m[0] for m in meshes if m is not None])
     lo, hi = allv.min(0), allv.max(0)
     half = (hi - lo).max() / 2
-    for i, ((v, f), title) in enumerate(zip(meshes, titles)):
+    for i, (mesh, title) in enumerate(zip(meshes, titles)):
+        if mesh is None:
+            continue
+        v, f = mesh
         ax = fig.add_subplot(nrows, ncols, i + 1, projection="3d")
         c = (v.max(0) + v.min(0)) / 2
         ax.plot_trisurf(v[:, 0], v[:, 1], v[:, 2], triangles=f, color="#9fb8d6", edgecolor="none",

@@ -192,8 +192,10 @@ def sheet(path, kept, rows, columns=6):
     meshes, titles = [], []
     for start in range(0, len(names), columns):
         part = names[start:start + columns]
-        meshes += [kept[n][0] for n in part] + [kept[n][1] for n in part]
-        titles += [f"{n.split('/')[0]}: scan" for n in part] + [f"fit, {errors[n]:.2f} % of height" for n in part]
+        blank = [None] * (columns - len(part))  # a short last row keeps scans above their fits
+        meshes += [kept[n][0] for n in part] + blank + [kept[n][1] for n in part] + blank
+        titles += ([f"{n.split('/')[0]}: scan" for n in part] + [""] * len(blank)
+                   + [f"fit, {errors[n]:.2f} % of height" for n in part] + [""] * len(blank))
     contact_sheet(path, meshes, titles, ncols=columns, elev=10, azim=-70)
     print(f"wrote {path}")
 
