@@ -251,17 +251,24 @@ def test_transfer_motion_from_shape_key_animation_keeps_pose_and_target_identity
     assert scene.frame_current == 1
 
 
+def animated_mesh(name, basis, code_from, code_to):
+    """A plain mesh (no basis keys) at F(code_from) moved to F(code_to) by its own shape key, keyed 0 at
+    frame 1 and 1 at frame 4."""
+    obj = add_mesh(name, decode(basis, code_from), basis.faces)
+    obj.shape_key_add(name="Basis")
+    key = obj.shape_key_add(name="move")
+    key.data.foreach_set("co", decode(basis, code_to).ravel())
+    for frame, value in ((1, 0.0), (4, 1.0)):
+        key.value = value
+        key.keyframe_insert("value", frame=frame)
+    return obj
+
+
 def test_transfer_motion_from_any_animated_mesh_evaluated_per_frame(scene, tiny):
     """A plain mesh (no basis keys) animated by its own shape key: evaluated by the depsgraph per frame."""
     basis = tiny[0]
     c0, c1 = np.r_[POSES[0], 0.2, 0.2], np.r_[POSES[3], 0.2, 0.2]
-    src = add_mesh("cache_like", decode(basis, c0), basis.faces)
-    src.shape_key_add(name="Basis")
-    key = src.shape_key_add(name="move")
-    key.data.foreach_set("co", decode(basis, c1).ravel())
-    for frame, value in ((1, 0.0), (4, 1.0)):
-        key.value = value
-        key.keyframe_insert("value", frame=frame)
+    animated_mesh("cache_like", basis, c0, c1)
     target = registered("target", np.r_[0.0, 0.0, IDENTITY])
     scene.bareesa.frame_start, scene.bareesa.frame_end = 1, 4
     assert bpy.ops.bareesa.transfer_motion(source="cache_like", target="target") == {"FINISHED"}
@@ -478,13 +485,7 @@ def test_transfer_motion_from_an_alembic_mesh_cache(scene, tiny, tmp_path):
     """A mesh-sequence cache (Alembic, MeshSequenceCache modifier) is evaluated per frame like any animation."""
     basis = tiny[0]
     c0, c1 = np.r_[POSES[1], 0.3, 0.3], np.r_[POSES[2], 0.3, 0.3]
-    src = add_mesh("to_cache", decode(basis, c0), basis.faces)
-    src.shape_key_add(name="Basis")
-    key = src.shape_key_add(name="move")
-    key.data.foreach_set("co", decode(basis, c1).ravel())
-    for frame, value in ((1, 0.0), (4, 1.0)):
-        key.value = value
-        key.keyframe_insert("value", frame=frame)
+    src = animated_mesh("to_cache", basis, c0, c1)
     select(src)
     scene.frame_start, scene.frame_end = 1, 4
     abc = tmp_path / "motion.abc"
