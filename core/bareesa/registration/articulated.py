@@ -17,7 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..geometry import vertex_areas
 from ..latent import project_to_basis
+from ..mesh import face_geometry
 from ..optimize import minimize_lbfgs
 from ..transforms import Similarity, axis_angle_rotation
 from ..varifold import BinnedMeasureLoss, cell_features
@@ -144,10 +146,9 @@ def surface_samples(verts, faces, weights, count, seed=0):
     """Points of a surface drawn in proportion to area (fixed seed), each standing for an equal share of it:
     verts (N, 3), faces (F, 3), skinning weights (N, J) -> centres (S, 3), unit normals (S, 3), the share
     (float), their skinning weights (S, J) (their face's vertices' mean)."""
-    vectors = np.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]])
-    areas = 0.5 * np.linalg.norm(vectors, axis=1)
+    vectors, areas, _ = face_geometry(verts, faces)
     pick = np.random.default_rng(seed).choice(len(faces), count, p=areas / areas.sum())
-    normals = vectors[pick] / np.maximum(2 * areas[pick], 1e-300)[:, None]
+    normals = vectors[pick] / np.maximum(areas[pick], 1e-300)[:, None]
     return (verts[faces[pick]].mean(1), normals, float(areas.sum() / count), weights[faces[pick]].mean(1))
 
 
@@ -180,9 +181,7 @@ def searched_joints(skeleton, template, faces, roots=False, share=0.05):
         p = skeleton.parents[j]
         if p >= 0:
             subtree[p] |= subtree[j]
-    corners = template[faces]
-    areas = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
-    vertex_area = np.bincount(faces.ravel(), np.repeat(areas / 3, 3), minlength=len(template))
+    vertex_area = vertex_areas(torch.as_tensor(template), torch.as_tensor(faces)).numpy()
     total = vertex_area.sum()
     out = {}
     for j in range(n_joints):
@@ -254,10 +253,11 @@ class PoseProblem:
         self.samples = (as_t(centres), as_t(normals), torch.full((len(centres),), share, dtype=torch.float64),
                         as_t(weights))
         self.scan = (transform.apply(np.asarray(scan_verts, dtype=np.float64)), scan_faces, face_weights)
-        self.center = surface_centroid(basis.template, basis.faces)[1]
-        self.shift = surface_centroid(*self.scan)[1] - self.center  # where the posed centroid goes
+        (template_area, self.center), (scan_area, scan_center) = (surface_centroid(basis.template, basis.faces),
+                                                                  surface_centroid(*self.scan))
+        self.shift = scan_center - self.center  # where the posed centroid goes
         # the scan's size over the template's by their areas (a pose does not change them)
-        self.size = math.sqrt(surface_centroid(*self.scan)[0] / surface_centroid(basis.template, basis.faces)[0])
+        self.size = math.sqrt(scan_area / template_area)
         self.n_joints, self.limit = len(skeleton.joints), math.log(settings.scale_limit)
         self.free = torch.as_tensor(skeleton.parents >= 0)  # the root's rotation is the similarity's
         self.sigmas = [s * basis.scale for s in settings.sigmas]
@@ -278,6 +278,23 @@ class PoseProblem:
         turned = (blend @ normals[:, :, None])[..., 0]
         return posed, turned / turned.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
+    def place(self, posed, turned, x):
+        """Posed samples (..., S, 3) and their normals moved by variables x (n,) tensor: turned and scaled
+        about their centroid, which x's translation places, the surface areas matched before x's scale (a
+        raised arm moves the centroid and changes the second moments, the pre-alignment's scale, not the
+        area, so every pose tried keeps the scan's centroid and size) -> (posed, normals, scale tensor)."""
+        n = self.n_joints
+        scale = torch.exp(bounded_log_scale(x[-1:], self.limit))[0] * self.size
+        r = axis_angle_rotation(x[3 * n:3 * n + 3])
+        return scale * (posed - posed.mean(-2, keepdim=True)) @ r.T + x[3 * n + 3:3 * n + 6], turned @ r.T, scale
+
+    def penalty(self, rot):
+        """The range penalty and the prior of joint rotations (..., J, 3) tensor -> (...)."""
+        limits = self.tensors[2]
+        excess = torch.relu(limits[..., 0] - rot) + torch.relu(rot - limits[..., 1])
+        return (self.settings.limit_weight * (excess ** 2).sum((-2, -1))
+                + self.settings.prior * (rot ** 2).sum((-2, -1)))
+
     def values(self, sigma, x, rotvecs):
         """The objective at ``sigma`` (cells of ``search_cell``) of variables x (n,) numpy with their joint
         rotations replaced by each of rotvecs (T, J, 3) -> (T,) numpy: one batched posing and binning for all
@@ -289,14 +306,11 @@ class PoseProblem:
                                                      cell_size), sigma)
             self._objectives[key] = (scan.target, float(scan.self_t))
         (target_x, target_f), self_t = self._objectives[key]
-        n, count = self.n_joints, len(rotvecs)
+        count = len(rotvecs)
         with torch.no_grad():
             rot = torch.as_tensor(rotvecs, dtype=torch.float64) * self.free[:, None]
-            posed, turned = self.posed_samples(rot)  # (T, S, 3)
-            scale = math.exp(float(bounded_log_scale(float(x[-1]), self.limit))) * self.size
-            r = axis_angle_rotation(torch.as_tensor(x[3 * n:3 * n + 3]))
-            posed = scale * (posed - posed.mean(1, keepdim=True)) @ r.T + torch.as_tensor(x[3 * n + 3:3 * n + 6])
-            turned = turned @ r.T
+            posed, turned, scale = self.place(*self.posed_samples(rot), torch.as_tensor(x))  # (T, S, 3)
+            scale = float(scale)
             # every trial's samples binned at once: cells keyed by (trial, cell)
             ijk = torch.floor(posed / cell_size).long()
             ijk = ijk - ijk.reshape(-1, 3).min(0).values
@@ -321,11 +335,7 @@ class PoseProblem:
             own = torch.exp(-g * torch.cdist(cx, cx) ** 2) * (cf @ cf.transpose(1, 2))
             cross = torch.exp(-g * torch.cdist(cx, target_x[None]) ** 2) * (cf @ target_f.T[None])
             gamma = (own.sum((1, 2)) - 2 * cross.sum((1, 2)) + self_t) / self_t
-            limits = self.tensors[2]
-            excess = torch.relu(limits[..., 0] - rot) + torch.relu(rot - limits[..., 1])
-            value = gamma + self.settings.limit_weight * (excess ** 2).sum((1, 2)) + self.settings.prior * (
-                rot ** 2).sum((1, 2))
-        return value.numpy()
+        return (gamma + self.penalty(rot)).numpy()
 
     def rotations(self, x):
         """The joints' rotation vectors (J, 3) numpy of variables x (the root's zero)."""
@@ -337,24 +347,16 @@ class PoseProblem:
         key = (sigma, self.settings.cell if cell is None else cell)
         if key in self._objectives:
             return self._objectives[key]
-        cell, settings, n = key[1] * sigma, self.settings, self.n_joints
+        cell, n = key[1] * sigma, self.n_joints
         scan = BinnedMeasureLoss(*coarse_measure(self.scan[0] - self.center, self.scan[1], self.scan[2], cell), sigma)
-        self_t, limits, masses = float(scan.self_t), self.tensors[2], self.samples[2]
+        self_t, masses = float(scan.self_t), self.samples[2]
 
         def objective(x):
             rot = x[:3 * n].reshape(n, 3) * self.free[:, None]
-            posed, turned = self.posed_samples(rot)
-            scale = torch.exp(bounded_log_scale(x[-1:], self.limit))[0]
-            r = axis_angle_rotation(x[3 * n:3 * n + 3])
-            # turned and scaled about the posed centroid, which x's translation places, the surface areas
-            # matched before x's scale: a raised arm moves the centroid and changes the second moments (the
-            # pre-alignment's scale), not the area, so every pose tried keeps the scan's centroid and size
-            scale = scale * self.size
-            posed = scale * (posed - posed.mean(0)) @ r.T + x[3 * n + 3:3 * n + 6]
+            posed, turned, scale = self.place(*self.posed_samples(rot), x)
             # binned afresh each evaluation (the cells follow the pose; the sums are differentiable)
-            gamma = scan(*cell_features(posed, turned @ r.T, masses * scale ** 2, cell)[:2]) / self_t
-            excess = torch.relu(limits[..., 0] - rot) + torch.relu(rot - limits[..., 1])
-            return gamma + settings.limit_weight * (excess ** 2).sum() + settings.prior * (rot ** 2).sum()
+            gamma = scan(*cell_features(posed, turned, masses * scale ** 2, cell)[:2]) / self_t
+            return gamma + self.penalty(rot)
 
         self._objectives[key] = objective
         return objective
