@@ -112,17 +112,14 @@ def geodesic_rows(basis, truths, n_pairs, frames=9):
     return rows
 
 
-def training_crossing_share(n, log=print):
-    """Share of a sample of training postures (the first performer's) that cross themselves."""
+def training_crossing_share(log=print):
+    """Share of the first performer's training postures (as the build keeps them,
+    ``bases.build.human.training_postures``) that cross themselves."""
     from bases.build import human as hb
-    from bases.build.poses import POSE_FAMILIES, pose_family, random_pose
 
     gen = hb.Human(log)
-    rng = np.random.default_rng(hb.POSTURE_SEED)
-    postures = [random_pose(rng) for _ in range(hb.RANDOM_POSTURES)]
-    postures += [pose_family(name, rng) for name in POSE_FAMILIES for _ in range(hb.FAMILY_VARIANTS)]
-    neutral = {k: np.array([0.5]) for k in gen.model.phenotype_labels}
-    bodies = gen.postures(neutral, postures[:n])
+    neutral = {k: np.array([0.5]) for k in gen.model.phenotype_labels}  # the build's first performer
+    bodies = hb.training_postures(gen, neutral, hb.POSTURE_SEED)[1]
     return crossing_share(bodies, gen.faces)[0]
 
 
@@ -162,7 +159,7 @@ def main(argv=None):
                                      keep=kept if name in extreme else None))
         print("  ".join(str(v) for v in rows[-1].values()), flush=True)
     geodesics = geodesic_rows(basis, {n: truths[n] for n in extreme}, args.geodesics) if args.geodesics else []
-    training = training_crossing_share(40) if args.geodesics else None
+    training = training_crossing_share() if args.geodesics else None
     figures, tables = summary(rows, geodesics, training)
     write_results("pose_coverage", figures, tables, TARGETS,
                   variant=variant_of(parser, args, ("truths", "threads", "sheet")), labels=LABELS)

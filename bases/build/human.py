@@ -464,6 +464,11 @@ class Human:
                  for k in self.model.phenotype_labels}
         return self.to_template(anny_bodies(self.model, pheno, poses))
 
+    def segments(self):
+        """Each template vertex's body segment (N,) int (``poses.vertex_segments``)."""
+        return vertex_segments(self.bones, self.model.vertex_bone_indices.cpu().numpy(),
+                               self.model.vertex_bone_weights.cpu().numpy(), self.map)[0]
+
     def skeleton(self):
         """The template's skeleton as ``bareesa.registration.articulated`` reads it from a basis' extras (without
         its ranges and pose library): joints (J, 3) at Anny's rest bone heads (the template's frame), parents,
@@ -528,6 +533,32 @@ def skeleton_extras(human, postures):
                                                                                  limits[..., 1])}
 
 
+def training_postures(human, phenotype, seed, segments=None):
+    """The static postures one performer {label: scalar} takes in the build (seeded by ``seed``):
+    RANDOM_POSTURES random ones and FAMILY_VARIANTS of every named family, each drawn again while it
+    crosses itself in more face pairs than its kind allows (``poses.plausible``; segments: ``Human.segments``)
+    -> (postures [(rotations, root)], bodies [(N, 3)], the draws dropped)."""
+    rng = np.random.default_rng(seed)
+    segments = human.segments() if segments is None else segments
+    postures, bodies, dropped = [], [], 0
+    draws = [(lambda: random_pose(rng), RANDOM_POSTURES, RANDOM_CROSSINGS)]
+    draws += [(lambda name=name: pose_family(name, rng), FAMILY_VARIANTS, FAMILY_CROSSINGS) for name in POSE_FAMILIES]
+    for draw, wanted, crossings in draws:
+        found = 0
+        for _ in range(4):  # batches of draws until enough cross no more than allowed
+            batch = [draw() for _ in range(wanted - found)]
+            for posture, body in zip(batch, human.postures(phenotype, batch)):
+                if plausible(body, human.faces, crossings, segments):
+                    postures.append(posture)
+                    bodies.append(body)
+                    found += 1
+                else:
+                    dropped += 1
+            if found == wanted:
+                break
+    return postures, bodies, dropped
+
+
 def _take(pheno, i):
     return {k: v[i:i + 1] for k, v in pheno.items()}
 
@@ -544,29 +575,13 @@ def generate(log=print, test=True, motion_identities=MOTION_IDENTITIES, n_train=
     sequences = {(i, m): human.motion(p, m).astype(np.float32) for i, p in enumerate(performers)
                  for m in HUMAN_TRAIN_MOTIONS}
     log(f"human: baked {len(sequences)} training sequences ({time.perf_counter() - t0:.0f} s)")
-    segments = vertex_segments(human.bones, human.model.vertex_bone_indices.cpu().numpy(),
-                               human.model.vertex_bone_weights.cpu().numpy(), human.map)[0]
+    segments = human.segments()
     postures, bodies, dropped = [], [], 0
     for i, p in enumerate(performers):
-        rng = np.random.default_rng(POSTURE_SEED + i)
-        kept = [human.rest(p)[0]]
-        draws = [(lambda: random_pose(rng), RANDOM_POSTURES, RANDOM_CROSSINGS)]
-        draws += [(lambda name=name: pose_family(name, rng), FAMILY_VARIANTS, FAMILY_CROSSINGS)
-                  for name in POSE_FAMILIES]
-        for draw, wanted, crossings in draws:
-            found = 0
-            for _ in range(4):  # batches of draws until enough cross nothing but themselves
-                batch = [draw() for _ in range(wanted - found)]
-                for posture, body in zip(batch, human.postures(p, batch)):
-                    if plausible(body, human.faces, crossings, segments):
-                        postures.append(posture)
-                        kept.append(body)
-                        found += 1
-                    else:
-                        dropped += 1
-                if found == wanted:
-                    break
-        bodies.append(np.stack(kept).astype(np.float32))
+        drawn, kept, lost = training_postures(human, p, POSTURE_SEED + i, segments)
+        postures += drawn
+        dropped += lost
+        bodies.append(np.stack([human.rest(p)[0], *kept]).astype(np.float32))
     log(f"human: baked {len(postures)} training postures, {dropped} crossing ones drawn again "
         f"({time.perf_counter() - t0:.0f} s)")
     data = {"template": human.template, "faces": human.faces, "train_identities": train, "train_rest": rests,
