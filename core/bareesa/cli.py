@@ -35,9 +35,12 @@ from .workflows import (KnownCode, Options, Scan, check_device, code_of, extrapo
 
 
 def _options(args, **kwargs):
-    """The workflows.Options of a verb: its --device (checked), its registration settings (--config, --set)
-    and the given fields."""
-    return Options(device=check_device(args.device), registration=registration_overrides(args), **kwargs)
+    """The workflows.Options of a verb: its --device (checked), its registration settings (--config, --set;
+    --no-detail turns the detail layer of raw scans off) and the given fields."""
+    settings = registration_overrides(args)
+    if getattr(args, "no_detail", False):
+        settings = {**settings, "detail.enabled": False}
+    return Options(device=check_device(args.device), registration=settings, **kwargs)
 
 
 def _add_device(p):
@@ -210,9 +213,11 @@ def cmd_transfer(args):
     options = _options(args)
     basis = load_basis(args.basis)
     frames = [load_input(basis, p) for p in args.frames]
-    out = transfer(basis, frames, load_input(basis, args.identity), args.group, options).motion
-    _write_frames(args.output, basis, out)
-    _print({"frames": len(out), "output": str(args.output)}, args.json, "motion transfer")
+    moved = transfer(basis, frames, load_input(basis, args.identity), args.group, options)
+    detail = None if args.no_detail else moved.detail
+    _write_frames(args.output, basis, moved.motion, detail=detail)
+    _print({"frames": len(moved.motion), "output": str(args.output), "identity_detail_kept": detail is not None},
+           args.json, "motion transfer")
 
 
 def cmd_sample(args):
@@ -251,15 +256,27 @@ def cmd_register(args):
                       callback=callback).registration
     finally:
         close()
-    save_mesh(args.output, res.vertices, basis.faces)
-    np.save(Path(args.output).with_suffix(".code.npy"), res.code)
+    output = Path(args.output)
+    save_mesh(output, res.output_vertices, basis.faces)
+    np.save(output.with_suffix(".code.npy"), res.code)
     out = res.to_json()
+    if res.detail is not None:  # the basis fit beside the detailed mesh, and the layer itself (template frame)
+        basis_fit = output.with_name(output.stem + ".basis" + output.suffix)
+        save_mesh(basis_fit, res.vertices, basis.faces)
+        np.save(output.with_suffix(".detail.npy"), res.detail)
+        out["basis_fit_output"] = str(basis_fit)
     if args.json:
         _print(out, True)
     else:
-        _print({"output": str(args.output), "varifold": out["varifold"], "chamfer": out["chamfer"],
-                "residual": out["residual"], "seconds": out["seconds"]}, False,
-               f"registered {args.scan} onto basis '{basis.name}'")
+        report = res.detail_report or {}
+        shown = {"output": str(args.output), "varifold": out["varifold"], "basis fit chamfer": out["chamfer"],
+                 "basis fit residual": out["residual"]}
+        if res.detail is not None:
+            shown.update({"detailed chamfer": report["chamfer"], "detailed residual": report["residual"],
+                          "basis fit output": out["basis_fit_output"]})
+        elif report.get("skipped") and report["skipped"] != "turned off":
+            shown["detail"] = f"none ({report['skipped']})"
+        _print({**shown, "seconds": out["seconds"]}, False, f"registered {args.scan} onto basis '{basis.name}'")
     if res.retried_alignments and not args.json:
         print(f"the first fit was poor: registered again from {res.retried_alignments} other alignments, "
               "kept the better")
@@ -433,7 +450,10 @@ def build_parser():
     p.add_argument("--show-config", action="store_true",
                    help="print the registration settings this command would use (basis card, --config, --set) and "
                         "exit")
-    p.add_argument("--json", action="store_true", help="print JSON (code, varifold, chamfer, seconds, levels)")
+    p.add_argument("--no-detail", action="store_true",
+                   help="the pure basis fit: no detail layer (by default the registered mesh also takes the scan's own "
+                        "detail, and the basis fit is written beside it as OUTPUT.basis.ply)")
+    p.add_argument("--json", action="store_true", help="print JSON (code, varifold, chamfer, seconds, levels, detail)")
     p.set_defaults(func=cmd_register)
 
     p = sub.add_parser("register-batch", help="register many scans (or a 4D sequence) on a Dask cluster, resumably")
@@ -494,6 +514,9 @@ def build_parser():
     p.add_argument("--group", default="shape", help="the identity group of the basis (default: shape)")
     p.add_argument("--basis", default=DEFAULT_BASIS, help=f"bundled basis name or .npz path (default: {DEFAULT_BASIS})")
     p.add_argument("-o", "--output", type=Path, required=True)
+    p.add_argument("--no-detail", action="store_true",
+                   help="frames of the basis alone (by default the identity's off-basis detail, or the detail layer "
+                        "of its scan, is on every frame)")
     _add_device(p)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=cmd_transfer)

@@ -486,6 +486,78 @@ def path_energy(path, faces, weights=PRESETS["body"], duration=1.0, per_step=Fal
     return terms if per_step else terms.sum(-1)
 
 
+def _first_order_blocks(verts, faces, w):
+    """The first-order terms of G_q face by face: (N, 3), (F, 3) -> (F, 6, 6) symmetric blocks M_f with
+    G_q(h, h) = sum_f e_f^T M_f e_f + (zeroth and second order), e_f = (h_1 - h_0, h_2 - h_0) (6,)."""
+    n_faces = faces.shape[0]
+    soup = verts[faces].reshape(-1, 3)
+    soup_faces = torch.arange(3 * n_faces, device=verts.device).reshape(n_faces, 3)
+    probes = verts.new_zeros(6, n_faces, 3, 3)
+    for k in range(6):  # probe k moves corner 1 + k // 3 along axis k % 3 on every face
+        probes[k, :, 1 + k // 3, k % 3] = 1
+    probes = probes.reshape(6, 3 * n_faces, 3).requires_grad_(True)
+    first = H2Weights(0.0, w.a1, w.b1, w.c1, w.d1, 0.0)
+    with torch.enable_grad():  # path_energy([q - h/2, q + h/2]) = G_q(h, h); its gradient is 2 M h
+        e = path_energy(torch.stack([soup - probes / 2, soup + probes / 2], -3), soup_faces, first).sum()
+        (g,) = torch.autograd.grad(e, probes)
+    blocks = g.reshape(6, n_faces, 3, 3)[:, :, 1:, :].reshape(6, n_faces, 6).transpose(0, 1) / 2
+    return (blocks + blocks.transpose(1, 2)) / 2
+
+
+def _cotan_matrix(verts, faces):
+    """The un-normalised cotangent Laplacian L (``geometry.cotan_laplacian``) as a torch sparse (N, N)."""
+    n = verts.shape[0]
+    cot = geometry.corner_cotangents(verts, faces)
+    rows, cols, vals = [], [], []
+    for k in range(3):  # edge (i, j) opposite corner k, weight cot_k
+        i, j, c = faces[:, (k + 1) % 3], faces[:, (k + 2) % 3], cot[:, k]
+        rows += [i, j, i, j]
+        cols += [j, i, i, j]
+        vals += [-c, -c, c, c]
+    return torch.sparse_coo_tensor(torch.stack([torch.cat(rows), torch.cat(cols)]), torch.cat(vals),
+                                   (n, n), check_invariants=False).coalesce()
+
+
+def _inverse_quarter_areas(area):
+    """1 / (4 A_v) where A_v > 0, else 0."""
+    return torch.where(area > 0, 1 / (4 * torch.where(area > 0, area, torch.ones_like(area))), torch.zeros_like(area))
+
+
+def sparse_metric(verts, faces, weights=PRESETS["body"]):
+    """G_q as a sparse matrix on vertex fields flattened vertex-major (h.reshape(-1)): (N, 3), (F, 3) ->
+    scipy.sparse csr (3N, 3N) float64 with h^T G h = G_q(h, h). Not differentiable in verts; what a
+    solver over free vertex displacements preconditions with (``registration.detail``)."""
+    import scipy.sparse as sp
+
+    w = H2Weights.parse(weights)
+    verts = verts.detach().to(torch.float64)
+    faces = faces.long()
+    n = verts.shape[0]
+    out = sp.csr_matrix((3 * n, 3 * n))
+    if w.a1 or w.b1 or w.c1 or w.d1:
+        blocks = _first_order_blocks(verts, faces, w)  # (F, 6, 6) on (h1 - h0, h2 - h0)
+        select = torch.zeros(6, 9, dtype=torch.float64)  # corner coordinates (3 corners x 3 axes) -> edges
+        for e in range(2):
+            for a in range(3):
+                select[3 * e + a, 3 * (e + 1) + a], select[3 * e + a, a] = 1.0, -1.0
+        local = select.T @ blocks @ select  # (F, 9, 9)
+        index = (3 * faces[:, :, None] + torch.arange(3)).reshape(-1, 9)  # (F, 9) global rows
+        rows = index[:, :, None].expand(-1, 9, 9).reshape(-1).numpy()
+        cols = index[:, None, :].expand(-1, 9, 9).reshape(-1).numpy()
+        out = out + sp.csr_matrix((local.reshape(-1).numpy(), (rows, cols)), shape=(3 * n, 3 * n))
+    if w.a0 or w.a2:
+        area = geometry.vertex_areas(verts, faces)
+        eye = sp.identity(3, format="csr")
+        if w.a0:
+            out = out + w.a0 * sp.kron(sp.diags(area.numpy()), eye, format="csr")
+        if w.a2:
+            lap = _cotan_matrix(verts, faces)
+            idx = lap.indices().numpy()
+            lap = sp.csr_matrix((lap.values().numpy(), (idx[0], idx[1])), shape=(n, n))
+            out = out + w.a2 * sp.kron(lap.T @ sp.diags(_inverse_quarter_areas(area).numpy()) @ lap, eye, format="csr")
+    return ((out + out.T) / 2).tocsr()
+
+
 def assembled_metric_matrix(verts, faces, fields, weights=PRESETS["body"], chunk=1024):
     """Latent metric matrix [G_q(h_i, h_j)] assembled face by face: (N, 3), (P, N, 3) -> (P, P).
 
@@ -505,18 +577,7 @@ def assembled_metric_matrix(verts, faces, fields, weights=PRESETS["body"], chunk
     # fields as (N, 3P) columns (axis-major): a face's edge variations are (2, 3, P) -> (6, P)
     columns = fields.detach().permute(1, 2, 0).reshape(n, 3 * p)
     if w.a1 or w.b1 or w.c1 or w.d1:
-        soup = verts[faces].reshape(-1, 3)
-        soup_faces = torch.arange(3 * n_faces, device=verts.device).reshape(n_faces, 3)
-        probes = verts.new_zeros(6, n_faces, 3, 3)
-        for k in range(6):  # probe k moves corner 1 + k // 3 along axis k % 3 on every face
-            probes[k, :, 1 + k // 3, k % 3] = 1
-        probes = probes.reshape(6, 3 * n_faces, 3).requires_grad_(True)
-        first = H2Weights(0.0, w.a1, w.b1, w.c1, w.d1, 0.0)
-        with torch.enable_grad():  # path_energy([q - h/2, q + h/2]) = G_q(h, h); its gradient is 2 M h
-            e = path_energy(torch.stack([soup - probes / 2, soup + probes / 2], -3), soup_faces, first).sum()
-            (g,) = torch.autograd.grad(e, probes)
-        blocks = g.reshape(6, n_faces, 3, 3)[:, :, 1:, :].reshape(6, n_faces, 6).transpose(0, 1) / 2
-        blocks = (blocks + blocks.transpose(1, 2)) / 2  # (F, 6, 6)
+        blocks = _first_order_blocks(verts, faces, w)
         for s in range(0, n_faces, chunk):
             fc = faces[s:s + chunk]
             edges = (columns[fc[:, 1:]] - columns[fc[:, :1]]).reshape(-1, 6, p)  # (f, 6, P)
@@ -527,17 +588,7 @@ def assembled_metric_matrix(verts, faces, fields, weights=PRESETS["body"], chunk
         if w.a0:
             gram += w.a0 * (flat * area[:, None]).T @ flat
         if w.a2:
-            cot = geometry.corner_cotangents(verts, faces)
-            rows, cols, vals = [], [], []
-            for k in range(3):  # edge (i, j) opposite corner k, weight cot_k
-                i, j, c = faces[:, (k + 1) % 3], faces[:, (k + 2) % 3], cot[:, k]
-                rows += [i, j, i, j]
-                cols += [j, i, i, j]
-                vals += [-c, -c, c, c]
-            lap = torch.sparse_coo_tensor(torch.stack([torch.cat(rows), torch.cat(cols)]), torch.cat(vals),
-                                          (n, n), check_invariants=False).coalesce()
-            lh = torch.sparse.mm(lap, columns).reshape(3 * n, p)
-            inv = torch.where(area > 0, 1 / (4 * torch.where(area > 0, area, torch.ones_like(area))),
-                              torch.zeros_like(area))
+            lh = torch.sparse.mm(_cotan_matrix(verts, faces), columns).reshape(3 * n, p)
+            inv = _inverse_quarter_areas(area)
             gram += w.a2 * (lh * inv[:, None]).T @ lh
     return (gram + gram.T) / 2

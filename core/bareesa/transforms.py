@@ -133,6 +133,11 @@ class Similarity:
         r, t = self._like(points)
         return ((points - t) / self.scale) @ r
 
+    def invert_vectors(self, vectors):
+        """The inverse map's linear part (displacements, no translation): (..., 3) -> same type."""
+        r, _ = self._like(vectors)
+        return (vectors / self.scale) @ r
+
     def compose(self, other):
         """The similarity ``self o other`` (apply ``other`` first)."""
         return Similarity(self.rotation @ other.rotation, self.scale * other.scale,

@@ -135,18 +135,21 @@ def check_device(device):
 @dataclass
 class MatchedEnd:
     """One end of a symmetric matching, as a registration gives it: code (P,), transform (scan ->
-    template frame), vertices (N, 3) in the scan's frame, varifold residual, Chamfer to the scan."""
+    template frame), vertices (N, 3) in the scan's frame, varifold residual, Chamfer to the scan; detail the
+    end's ``registration.detail.Detail`` (its displacement None when turned off or left out)."""
 
     code: np.ndarray
     transform: object
     vertices: np.ndarray
     varifold: float
     chamfer: float
+    detail: object = None
 
 
 @dataclass
 class Code:
-    """The code (P,) of one input; detail (N, 3) the off-basis detail of a TemplateMesh (else None);
+    """The code (P,) of one input; detail (N, 3) its off-basis detail, template frame: what the basis misses of a
+    TemplateMesh, the detail layer of a registered or matched Scan (``registration.detail``; None without);
     registration the RegistrationResult of a Scan, or the MatchedEnd of a matched one (else None)."""
 
     code: np.ndarray
@@ -165,7 +168,7 @@ def code_of(basis, item, options=Options(), callback=None, cancel=None):
         res = registration.register(basis, item.verts, item.faces, options.registration_config(basis),
                                     landmarks=item.landmarks, scan_face_weights=item.face_weights,
                                     callback=callback, cancel=cancel)
-        return Code(res.code, registration=res)
+        return Code(res.code, detail=res.detail, registration=res)
     raise InputError(f"an input is a Scan, a TemplateMesh or a KnownCode, got {type(item).__name__}")
 
 
@@ -188,14 +191,21 @@ def _scan_share(items, share=0.5):
     return share if any(isinstance(item, Scan) for item in items) else 0.0
 
 
-def matched_ends(basis, matching, scans):
-    """Both ends of a symmetric matching of two Scans: -> (MatchedEnd, MatchedEnd)."""
+def matched_ends(basis, matching, scans, config=None, callback=None, cancel=None):
+    """Both ends of a symmetric matching of two Scans, each with its detail layer when ``config`` (a
+    ``RegistrationConfig``) asks for one: -> (MatchedEnd, MatchedEnd)."""
+    monitor = Monitor("detail", callback, cancel)
     ends = []
     for k, scan in enumerate(scans):
         code = matching.path[0 if k == 0 else -1]
         verts = matching.transforms[k].invert(basis.template + np.tensordot(code, basis.fields, axes=1))
+        detail = None
+        if config is not None and config.detail.enabled:
+            detail = registration.detail_of(basis, code, matching.transforms[k], scan.verts, scan.faces, config,
+                                            scan.face_weights, monitor=monitor, progress=(k / 2, (k + 1) / 2))
         ends.append(MatchedEnd(code=code, transform=matching.transforms[k], vertices=verts,
-                               varifold=matching.varifold[k], chamfer=evaluation.chamfer(verts, scan.verts)))
+                               varifold=matching.varifold[k], chamfer=evaluation.chamfer(verts, scan.verts),
+                               detail=detail))
     return tuple(ends)
 
 
@@ -229,12 +239,15 @@ def geodesic_between(basis, a, b, options=Options(), callback=None, cancel=None)
     monitor = Monitor("geodesic", callback, cancel)
     weights = options.metric(basis)
     if isinstance(a, Scan) and isinstance(b, Scan):
+        config = options.registration_config(basis)
+        share = 0.85 if config.detail.enabled else 1.0  # the detail layers of both ends after the matching
         m = registration.symmetric_match(basis, (a.verts, a.faces), (b.verts, b.faces), steps=options.steps,
-                                         config=options.registration_config(basis),
-                                         weights=None if options.weights is None else weights,  # basis' own two
+                                         config=config, weights=None if options.weights is None else weights,
                                          face_weights=(a.face_weights, b.face_weights),
-                                         landmarks=(a.landmarks, b.landmarks), callback=callback, cancel=cancel)
-        ends = tuple(Code(e.code, registration=e) for e in matched_ends(basis, m, (a, b)))
+                                         landmarks=(a.landmarks, b.landmarks), callback=monitor.scaled(0.0, share),
+                                         cancel=cancel)
+        ends = tuple(Code(e.code, detail=None if e.detail is None else e.detail.displacement, registration=e)
+                     for e in matched_ends(basis, m, (a, b), config, monitor.scaled(share, 1.0), cancel))
         return LatentPath(ends=ends, path=m.path, distance=m.distance, matching=m)
     lo = _scan_share((a, b))
     ends = tuple(codes_of(basis, [a, b], options, monitor.scaled(0.0, lo), cancel))
@@ -318,10 +331,18 @@ def distances(basis, items, options=Options(), callback=None, cancel=None):
 @dataclass
 class Transfer:
     """Motion on another identity: motion (T, P); identity the Code of the identity input
-    (with its registration when it was a scan)."""
+    (with its registration when it was a scan); detail (T, N, 3) the identity's off-basis detail on every
+    frame (None when it has none)."""
 
     motion: np.ndarray
     identity: Code
+
+    @property
+    def detail(self):
+        """The identity's detail carried onto every frame: (T, N, 3), or None."""
+        if self.identity.detail is None:
+            return None
+        return np.broadcast_to(self.identity.detail, (len(self.motion),) + self.identity.detail.shape)
 
 
 def transfer(basis, frames, identity, group, options=Options(), callback=None, cancel=None):

@@ -19,7 +19,8 @@ Every setting lives in one frozen ``RegistrationConfig`` (``config``), defaulted
 Modules, in dependency order: ``config`` (the settings), ``prealign`` (candidate alignments from any
 orientation), ``problem`` (one level's objective, preconditioning, re-alignment and scoring),
 ``checks`` (input checks and the poor-fit test), ``prepared`` (per-basis constants kept in the basis),
-``result``, ``poses`` (typical poses tried as starts of the second level), ``multiscale``
+``result``, ``detail`` (the detail layer after the basis fit: free displacements under the H2 energy),
+``poses`` (typical poses tried as starts of the second level), ``multiscale``
 (``register``: the schedule from pre-alignment to the finest level), ``symmetric`` (two raw scans and
 the geodesic between them in one solve).
 
@@ -27,8 +28,9 @@ Frames: registration happens in the template frame; ``RegistrationResult.vertice
 back with the inverse similarity, so they overlay the scan in the scan's units.
 """
 
-from .config import (LevelSolve, MatchingSolve, PoseSearch, Prealignment, RegistrationConfig, Screening,
+from .config import (DetailFit, LevelSolve, MatchingSolve, PoseSearch, Prealignment, RegistrationConfig, Screening,
                      check_schedule)
+from .detail import Detail, detail_of, fit_detail
 from .multiscale import register
 from .poses import pose_starts
 from .prealign import Alignment, align_to_template, prealign_candidates, surface_moments
@@ -37,7 +39,7 @@ from .problem import resample_in_time
 from .result import RegistrationResult
 from .symmetric import Matching, symmetric_match
 
-__all__ = ["PREPARED_EXTRAS", "Alignment", "LevelSolve", "Matching", "MatchingSolve", "PoseSearch", "Prealignment",
-           "RegistrationConfig", "RegistrationResult", "Screening", "align_to_template", "check_schedule",
+__all__ = ["PREPARED_EXTRAS", "Alignment", "Detail", "DetailFit", "LevelSolve", "Matching", "MatchingSolve", "PoseSearch", "Prealignment",
+           "RegistrationConfig", "RegistrationResult", "Screening", "align_to_template", "check_schedule", "detail_of", "fit_detail",
            "pose_starts", "prealign_candidates", "prepare_basis", "register", "resample_in_time", "surface_moments",
            "symmetric_match"]

@@ -163,6 +163,48 @@ class ArticulatedFit:
 
 
 @dataclass(frozen=True)
+class DetailFit:
+    """The detail layer after the basis fit (``detail.fit_detail``): free per-vertex displacements.
+
+    enabled: fit it (off: the pure basis fit); kernel: its varifold's (oriented, "linear": the scan's pieces
+    are turned like the basis fit, and surfaces facing each other across a narrow gap, toes or fingers, are
+    not pulled into one another); sigmas: its varifold's, coarse to fine, relative to the basis'
+    scale, none finer than ``spacing`` x the scan's sampling (``detail.scan_spacing``); weights: of the data
+    term at each sigma; reach: template faces farther than this x the first sigma from the scan are left out
+    of the data term (holes); steps: of the straight path whose H2 energy regularises it; max_iter, ftol,
+    plateau_window, plateau, memory: each sigma's preconditioned L-BFGS; tol: kernel truncation; scan_cell: the
+    scan summed over cells of this x sigma; flip_cos, collapse: a face whose normal turns past this cosine
+    from the basis fit's, or whose area falls below this share of it, is bad; retries, stiffen: a fit with
+    bad faces is fitted again with the energy this many times stiffer, so many times, then left out;
+    fade_rings, fade_rounds: where the detail makes the surface cross itself it is faded out over this many
+    rings around the crossing faces, one ring more each round, so many rounds, then left out; poor_fits:
+    also fit it on a registration flagged poor.
+    """
+
+    enabled: bool = True
+    kernel: str = "linear"
+    sigmas: tuple = (0.005,)
+    weights: tuple = (1e8,)
+    spacing: float = 0.5
+    reach: float = 1.5
+    steps: int = 1
+    max_iter: int = 25
+    ftol: float = 1e-9
+    plateau_window: int = 5
+    plateau: float = 1e-3
+    memory: int = 10
+    tol: float = 1e-4
+    scan_cell: float = 0.3
+    flip_cos: float = 0.0
+    collapse: float = 0.1
+    retries: int = 2
+    stiffen: float = 4.0
+    fade_rings: int = 2
+    fade_rounds: int = 3
+    poor_fits: bool = False
+
+
+@dataclass(frozen=True)
 class MatchingSolve:
     """The joint solve of symmetric matching: plateau_window, plateau its stop (the path energy is a
     small part of the objective, so a level's plateau would stop it too early); start_dtype: of the
@@ -174,7 +216,8 @@ class MatchingSolve:
 
 
 _SECTIONS = {"prealignment": Prealignment, "articulated": ArticulatedFit, "solve": LevelSolve,
-             "screening": Screening, "poses": PoseSearch, "matching": MatchingSolve}
+             "screening": Screening, "poses": PoseSearch, "matching": MatchingSolve,
+             "detail": DetailFit}
 
 
 @dataclass(frozen=True, eq=False)
@@ -212,6 +255,7 @@ class RegistrationConfig:
     screening: Screening = field(default_factory=Screening)
     poses: PoseSearch = field(default_factory=PoseSearch)
     matching: MatchingSolve = field(default_factory=MatchingSolve)
+    detail: DetailFit = field(default_factory=DetailFit)
 
     def __post_init__(self):
         if self.schedule is not None:

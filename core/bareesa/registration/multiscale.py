@@ -34,6 +34,7 @@ from .articulated import Skeleton, articulated_start
 from .checks import (check_face_weights, check_landmarks, check_plausible_scan, fit_residual, is_poor_fit,
                      level_kernels)
 from .config import RegistrationConfig
+from .detail import Detail, detail_of
 from .poses import stage_budget, try_poses
 from .prealign import Alignment, landmark_alignment, prealign_candidates, surface_moments
 from .prepared import reference_moments
@@ -43,6 +44,8 @@ from .result import RegistrationResult
 #: What the progress says while KeOps' kernels are loaded, or built at their first use on a machine
 #: (``varifold.build_keops_kernels``: the bar stands still meanwhile)
 KEOPS_BUILD_MESSAGE = "registration: KeOps' kernels (built once per machine, at their first use)"
+#: The share of the progress bar of the basis fit when a detail layer follows it
+DETAIL_SHARE = 0.85
 #: ``register`` keywords that name a setting by another name than the configuration's
 SETTING_ALIASES = {"pose_candidates": "poses.candidates"}
 
@@ -112,7 +115,8 @@ def register(basis, scan_verts, scan_faces, config=None, *, landmarks=None, scan
     config = config.with_overrides({SETTING_ALIASES.get(k, k): v for k, v in settings.items()})
     if config.schedule is None:
         config = config.with_overrides(schedule=basis.schedule)
-    monitor = Monitor("register", callback, cancel)
+    outer = Monitor("register", callback, cancel)  # the basis fit reports into its share, the detail layer after
+    monitor = Monitor("register", outer.scaled(0.0, DETAIL_SHARE if config.detail.enabled else 1.0), cancel)
     validate_mesh(scan_verts, scan_faces, "scan")
     sv, sf = np.asarray(scan_verts, np.float64), np.asarray(scan_faces, np.int64)
     face_w = check_face_weights(scan_face_weights, sf.shape[0])
@@ -179,11 +183,34 @@ def register(basis, scan_verts, scan_faces, config=None, *, landmarks=None, scan
         retried = len(others)
         if again.residual < fit.residual:
             fit = again
+    detail = _detail(config, basis, problem, fit, outer)
+    detailed = None if detail.displacement is None else fit.vertices + fit.transform.invert_vectors(
+        detail.displacement)
+    report = {**detail.to_json(), "chamfer": None, "residual": None}
+    if detailed is not None:
+        report.update(chamfer=chamfer(detailed, used), residual=fit_residual(basis, detailed, used, fit.transform))
     return RegistrationResult(code=fit.path[-1], vertices=fit.vertices, path=fit.path, transform=fit.transform,
                               levels=fit.levels, varifold=fit.levels[-1]["varifold"],
                               chamfer=chamfer(fit.vertices, used), seconds=time.perf_counter() - start_time,
                               prealignment=fit.initial, residual=fit.residual, poor_fit=fit.poor,
-                              normal_spread=spread, retried_alignments=retried, articulated=articulated)
+                              normal_spread=spread, retried_alignments=retried, articulated=articulated,
+                              detail=detail.displacement, detailed_vertices=detailed, detail_report=report)
+
+
+def _detail(config, basis, problem, fit, monitor):
+    """The detail layer of the final fit (``detail.fit_detail``), or why there is none -> Detail."""
+    settings = config.detail
+    if not settings.enabled:
+        return Detail(None, [], skipped="turned off")
+    if fit.poor and not settings.poor_fits:
+        monitor.report(1.0, "registration: no detail layer on a poor fit")
+        return Detail(None, [], skipped="the basis fit is flagged poor")
+    monitor.report(DETAIL_SHARE, "registration: detail")
+    marks = None
+    if problem.marks is not None:
+        marks = (problem.pull, problem.landmark_points(fit.transform).detach().cpu().double())
+    return detail_of(basis, fit.path[-1], fit.transform, problem.scan, problem.scan_faces_np, config,
+                     problem.scan_weights_np, marks, monitor, (DETAIL_SHARE, 1.0))
 
 
 def _candidates(config, basis, sv, sf, face_w, marks, poses, monitor):

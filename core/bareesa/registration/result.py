@@ -24,7 +24,11 @@ class RegistrationResult:
     retried_alignments how many other alignments a poor fit was tried again from (0: none; the result
     is the better of the two tries); articulated the skeleton's pre-fit when the basis has a skeleton
     {score (None: the scan is near rest, no pose searched), start (-1 rest, else the pose library's index),
-    seconds}, else None.
+    seconds}, else None. detail (N, 3) the detail layer (``detail.fit_detail``: the scan's own detail the
+    basis cannot make) in the template frame, F(code) + detail the detailed mesh there, or None (turned off,
+    a poor fit, or left out); detailed_vertices (N, 3) that mesh in the scan's frame (None without detail);
+    detail_report {kept, skipped, stiffened, faded, rms, max, levels, seconds, chamfer, residual} (the last
+    two of the detailed mesh, like ``chamfer`` and ``residual`` of the basis fit).
     """
 
     code: np.ndarray
@@ -41,10 +45,19 @@ class RegistrationResult:
     normal_spread: float = None
     retried_alignments: int = 0
     articulated: dict = None
+    detail: np.ndarray = None
+    detailed_vertices: np.ndarray = None
+    detail_report: dict = None
+
+    @property
+    def output_vertices(self):
+        """The registered mesh (N, 3) in the scan's frame: the detailed one when there is a detail layer."""
+        return self.vertices if self.detailed_vertices is None else self.detailed_vertices
 
     def to_json(self):
         """JSON-ready summary {code, varifold, chamfer, residual, poor_fit, retried_alignments, normal_spread,
-        seconds, levels, transform}."""
+        seconds, levels, transform, detail}: chamfer and residual are the basis fit's, detail the detail
+        layer's report (with the detailed mesh's chamfer and residual)."""
         return {"code": [float(c) for c in self.code], "varifold": float(self.varifold),
                 "normal_spread": None if self.normal_spread is None else float(self.normal_spread),
                 "chamfer": float(self.chamfer), "seconds": float(self.seconds),
@@ -52,7 +65,7 @@ class RegistrationResult:
                 "retried_alignments": int(self.retried_alignments), "articulated": self.articulated,
                 "levels": [{k: (float(v) if isinstance(v, float) else v) for k, v in lv.items()}
                            for lv in self.levels],
-                "transform": self.transform.to_dict()}
+                "transform": self.transform.to_dict(), "detail": self.detail_report}
 
     def to_state(self):
         """Everything as numpy arrays, numbers and dicts (no class of this package; what a worker process

@@ -157,14 +157,15 @@ class VarifoldLoss(_FixedTarget):
         """Target centres (F',3), normals (F',3), weighted areas (F',); rebuilt if it requires grad."""
         return varifold_measure(*self._target_mesh) if self.target_requires_grad else self._measure
 
-    def __call__(self, verts, faces):
-        """Squared distance d^2(q, q_target) of the mesh (verts (N,3), faces (F,3)) -> scalar."""
+    def __call__(self, verts, faces, weights=None):
+        """Squared distance d^2(q, q_target) of the mesh (verts (N,3), faces (F,3); its faces' weights (F,) or
+        None: each face counted by its area times its weight) -> scalar."""
         check_mesh(verts, faces, "source")
         tc = self._measure[0]
         if verts.dtype != tc.dtype or verts.device != tc.device:
             raise InputError(f"source is {verts.dtype} on {verts.device} but the target is "
                              f"{tc.dtype} on {tc.device}; convert one of them")
-        q = varifold_measure(verts, faces.long())
+        q = varifold_measure(verts, faces.long(), weights)
         backend = resolve_backend(self.backend, q[0], tc, self.sigma, self.cutoff)
         return self._distance(Engine(backend, self.sigma, FacePairs(self.kernel), self.cutoff), q, self.target)
 

@@ -1,0 +1,214 @@
+r"""``fit_detail``: the scan's own detail on the registered template, after the basis fit.
+
+A basis fit q = F(alpha) reproduces the body the basis can make. The detail step adds free per-vertex
+displacements d (N, 3) of the registered template (template frame), the paper's unrestricted H2 matching
+started from the basis fit: coarse to fine over ``DetailFit.sigmas``,
+
+    minimise_d   weight * [ Gamma_sigma(q + d, scan) + landmark term ]  +  E(q -> q + d),
+
+Gamma the squared varifold distance (kernel ``DetailFit.kernel``, the scan's pieces turned to face like
+the basis fit when it is oriented; the registration's backend and scan face weights) and E the
+H2 energy (the basis' shape metric) of the deformation q -> q + d as a path of ``steps`` straight steps.
+Template faces farther than ``reach`` x the first sigma from the scan (over a hole, a cropped or masked
+part) are left out of the data term: the energy alone carries them along with their neighbours, so they
+do not reach into the hole. The finest sigma is no finer than ``spacing`` x the scan's sampling.
+
+The solve is L-BFGS preconditioned by the energy's Hessian at d = 0 (``h2_metric.sparse_metric``) plus the
+data term's curvature (``data_stiffness``): plain L-BFGS needs hundreds of iterations on N x 3 free
+variables under a second-order energy, this a few tens.
+
+A detail layer never adds broken faces: a fit that flips or collapses faces of the basis fit
+(``bad_faces``) is fitted again with a stiffer energy (``stiffen`` times the last), and left out (d = 0)
+when it still does; where it makes the surface cross itself where the basis fit did not, the detail is
+faded out around those faces (``fade``). The result is a ``Detail``, in the template frame: F(alpha) + d
+is the detailed mesh.
+"""
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse
+import torch
+from scipy.spatial import cKDTree
+
+from .. import h2_metric, optimize
+from ..geometry import vertex_areas
+from ..mesh import face_geometry, self_intersections
+from ..varifold import VarifoldLoss, default_cutoff, is_oriented
+from .problem import orient_like
+
+
+@dataclass
+class Detail:
+    """The detail layer of a registration: displacement (N, 3) in the template frame (None when left
+    out), one report per level {sigma, weight, stiffness, iterations, energy, varifold, seconds}, how many
+    times the energy was stiffened, how many vertices were faded out to keep the surface from crossing
+    itself, why the layer was left out (None: kept), seconds."""
+
+    displacement: np.ndarray | None
+    levels: list
+    stiffened: int = 0
+    faded: int = 0
+    skipped: str | None = None
+    seconds: float = 0.0
+
+    def to_json(self):
+        """JSON-ready summary (no arrays): kept, skipped, stiffened, faded, rms and max displacement, levels,
+        seconds."""
+        size = None if self.displacement is None else np.linalg.norm(self.displacement, axis=1)
+        return {"kept": self.displacement is not None, "skipped": self.skipped, "stiffened": self.stiffened,
+                "faded": self.faded, "rms": None if size is None else float(np.sqrt((size ** 2).mean())),
+                "max": None if size is None else float(size.max()), "levels": self.levels,
+                "seconds": float(self.seconds)}
+
+
+def bad_faces(verts, faces, reference, flip_cos=0.0, collapse=0.1):
+    """Faces of ``verts`` flipped against ``reference`` (their normals' cosine below flip_cos) or collapsed
+    (area below collapse x the reference's): (N, 3), (F, 3), (N, 3) -> bool (F,)."""
+    vec, area, _ = face_geometry(verts, faces)
+    ref_vec, ref_area, _ = face_geometry(reference, faces)
+    cos = (vec * ref_vec).sum(1) / np.maximum(area * ref_area, 1e-300)
+    return (cos < flip_cos) | (area < collapse * ref_area)
+
+
+def scan_spacing(verts, faces):
+    """The scan's sampling: the side of a right isosceles triangle of its median face area (a length)."""
+    return math.sqrt(2.0 * float(np.median(face_geometry(verts, faces)[1])))
+
+
+def reached_faces(fit, faces, target, target_faces, target_weights, distance):
+    """Template faces whose centre lies within ``distance`` of the scan's counted surface (its vertices and
+    face centres): fit (N, 3), faces (F, 3), target (M, 3), target_faces (G, 3), target_weights (G,) or None
+    -> bool (F,)."""
+    tf = target_faces if target_weights is None else target_faces[np.asarray(target_weights) > 0]
+    points = np.concatenate([target[np.unique(tf)], face_geometry(target, tf)[2]])
+    return cKDTree(points).query(face_geometry(fit, faces)[2], k=1, distance_upper_bound=distance)[0] <= distance
+
+
+def data_stiffness(objective, x, stiff_matrix, stiffness, mass, probe=1e-4):
+    """The data term's curvature per unit area along its own gradient: a finite difference of the objective's
+    gradient at x (3N,) along it, less the energy's part (2 x stiffness x stiff_matrix), over the mass
+    matrix's norm of the direction (>= 0) -> float."""
+    def grad(z):
+        zt = torch.from_numpy(z).requires_grad_(True)
+        return torch.autograd.grad(objective(zt), zt)[0].numpy()
+
+    g = grad(x)
+    direction = g / max(math.sqrt(float(g @ (mass @ g))), 1e-300)
+    length = probe * max(float(np.abs(x).max()), 1.0)
+    curvature = direction @ (grad(x + length * direction) - g) / length
+    curvature -= 2 * stiffness * direction @ (stiff_matrix @ direction)
+    return max(float(curvature), 0.0)
+
+
+def fade(displacement, faces, vertices, rings):
+    """The displacement (N, 3) faded to 0 at ``vertices`` and over ``rings`` rings of edges around them
+    (linearly in the ring): -> (N, 3)."""
+    n = displacement.shape[0]
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    adjacency = scipy.sparse.csr_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    adjacency = ((adjacency + adjacency.T) > 0).astype(np.float64)
+    reached = np.zeros(n, dtype=bool)
+    reached[vertices] = True
+    keep = np.where(reached, 0.0, 1.0)
+    for ring in range(1, rings + 1):
+        grown = (adjacency @ reached.astype(np.float64)) > 0
+        keep[grown & ~reached] = ring / (rings + 1)
+        reached |= grown
+    return displacement * keep[:, None]
+
+
+def _crossing_vertices(verts, faces, before):
+    """Vertices of the faces of ``verts`` that cross another face where they did not in ``before`` (a set
+    of face pairs) -> (K,) int."""
+    pairs = {tuple(p) for p in self_intersections(verts, faces).tolist()} - before
+    return np.unique(faces[np.array(sorted(pairs), dtype=np.int64).reshape(-1, 2).ravel()])
+
+
+def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, backend="auto", target_weights=None, landmarks=None, monitor=None, progress=(0.0, 1.0)):
+    """Detail displacements of a basis fit: fit (N, 3) F(alpha) and target (M, 3) the scan in the template
+    frame, faces (F, 3), target_faces (G, 3), settings a ``DetailFit``, metric the H2 weights, scale the
+    basis' (sigmas are relative to it); target_weights (G,) numpy or None; landmarks (pull, points) as
+    ``RegistrationProblem`` holds them, or None; monitor a ``progress.Monitor`` (cancellable) -> Detail."""
+    t0 = time.perf_counter()
+    fit, faces = np.asarray(fit, dtype=np.float64), np.asarray(faces, dtype=np.int64)
+    target, target_faces = np.asarray(target, dtype=np.float64), np.asarray(target_faces, dtype=np.int64)
+    if is_oriented(settings.kernel):  # the scan's pieces turned to face like the basis fit
+        target_faces = orient_like(target, target_faces, fit, faces, target_weights)[0]
+    q, f = torch.as_tensor(fit), torch.as_tensor(faces)
+    tv, tf = torch.as_tensor(target), torch.as_tensor(target_faces)
+    tw = None if target_weights is None else torch.as_tensor(np.asarray(target_weights, dtype=np.float64))
+    floor = settings.spacing * scan_spacing(target, target_faces if target_weights is None
+                                            else target_faces[np.asarray(target_weights) > 0])
+    sigmas = [max(s * scale, floor) for s in settings.sigmas]
+    sigmas = [s for k, s in enumerate(sigmas) if k == 0 or s < sigmas[k - 1] * 0.999]
+    reached = reached_faces(fit, faces, target, target_faces, target_weights, settings.reach * sigmas[0])
+    source_weights = torch.as_tensor(reached, dtype=torch.float64)
+    ramp = torch.linspace(0, 1, settings.steps + 1, dtype=torch.float64)[:, None, None]
+    stiff_matrix = h2_metric.sparse_metric(q, f, metric)  # the energy's Hessian at d = 0 is 2 x this
+    mass = scipy.sparse.kron(scipy.sparse.diags(vertex_areas(q, f).numpy()), scipy.sparse.identity(3), format="csr")
+    lo, hi = progress
+    stiffness, stiffened = 1.0, 0
+    for attempt in range(settings.retries + 1):
+        x, levels = np.zeros(q.numel()), []
+        for k, sigma in enumerate(sigmas):
+            t1 = time.perf_counter()
+            loss = VarifoldLoss(tv, tf, sigma, kernel=settings.kernel, backend=backend, target_weights=tw,
+                                cutoff=default_cutoff(sigma, settings.tol), target_cell=settings.scan_cell * sigma)
+            weight = settings.weights[min(k, len(settings.weights) - 1)]
+            terms = {}
+
+            def objective(xt):
+                d = xt.reshape(q.shape)
+                moved = q + d
+                energy = stiffness * h2_metric.path_energy(q + ramp * d, f, metric)
+                gamma = loss(moved, f, source_weights)
+                data = gamma if landmarks is None else gamma + landmarks[0](moved, landmarks[1])
+                terms[xt.detach().numpy().tobytes()] = (float(energy.detach()), float(gamma.detach()))
+                return weight * data + energy
+
+            share = (lo + (hi - lo) * k / len(sigmas), lo + (hi - lo) * (k + 1) / len(sigmas))
+            solve = optimize.sparse_solver(2 * stiffness * stiff_matrix
+                                           + data_stiffness(objective, x, stiff_matrix, stiffness, mass) * mass)
+            x, _, nit = optimize.minimize_preconditioned(objective, x, solve, monitor, max_iter=settings.max_iter,
+                                                         progress=share, message=f"registration: detail "
+                                                         f"(sigma {sigma:.3g})", ftol=settings.ftol,
+                                                         plateau=(settings.plateau_window, settings.plateau),
+                                                         memory=settings.memory)
+            energy, gamma = terms.get(x.tobytes(), (float("nan"), float("nan")))
+            levels.append({"sigma": float(sigma), "weight": float(weight), "stiffness": float(stiffness),
+                           "iterations": int(nit), "energy": energy, "varifold": gamma,
+                           "seconds": time.perf_counter() - t1})
+        d = x.reshape(q.shape)
+        if not bad_faces(fit + d, faces, fit, settings.flip_cos, settings.collapse).any():
+            break
+        stiffness *= settings.stiffen
+        stiffened += 1
+    else:
+        return Detail(None, levels, stiffened, 0, "it flipped or collapsed faces of the basis fit",
+                      time.perf_counter() - t0)
+    # the kept layer adds no crossing of the surface and no bad face: faded out around them, wider each round
+    before = {tuple(p) for p in self_intersections(fit, faces).tolist()}
+    faded = np.zeros(len(fit), dtype=bool)
+    for rings in range(settings.fade_rings, settings.fade_rings + settings.fade_rounds + 1):
+        broken = np.unique(faces[bad_faces(fit + d, faces, fit, settings.flip_cos, settings.collapse)])
+        broken = np.union1d(broken, _crossing_vertices(fit + d, faces, before))
+        if not len(broken):
+            return Detail(d, levels, stiffened, int(faded.sum()), None, time.perf_counter() - t0)
+        faded[broken] = True
+        d = fade(d, faces, np.flatnonzero(faded), rings)
+    return Detail(None, levels, stiffened, int(faded.sum()), "it made the surface cross itself",
+                  time.perf_counter() - t0)
+
+
+def detail_of(basis, code, transform, scan_verts, scan_faces, config, scan_face_weights=None, landmarks=None,
+              monitor=None, progress=(0.0, 1.0)):
+    """The detail layer of a basis fit: code (P,), transform (scan -> template frame), the scan (M, 3), (G, 3) in
+    its frame, a ``RegistrationConfig`` (its ``detail`` settings, shape metric and backend); scan_face_weights
+    (G,) or None; landmarks (pull, points in the template frame) or None -> Detail."""
+    return fit_detail(basis.template + np.tensordot(code, basis.fields, axes=1), basis.faces,
+                      transform.apply(np.asarray(scan_verts, dtype=np.float64)), scan_faces, config.detail,
+                      config.shape_metric(basis), basis.scale, backend=config.backend,
+                      target_weights=scan_face_weights, landmarks=landmarks, monitor=monitor, progress=progress)
