@@ -11,6 +11,13 @@ same decoder. The operators choose k_i = one standard deviation of the basis'
 training codes for that field, so a slider at 1 is one typical step, and the slider
 range is the training range (Blender caps sliders at +-10: a key whose values would
 pass that gets a larger scale).
+
+What the basis cannot make, the off-basis *detail* (N, 3) in the template frame (a
+registration's detail layer), is one more key ``Detail`` = template + detail at value
+1 (slider 0-1), after the field keys; a path whose ends have different detail adds
+``Detail Change`` = template + (last frame's detail - first frame's), keyed from 0 to
+1. They are not field keys: codes are read from the field keys by name only, and the
+detail an object adds is read from these keys (``detail_of``).
 """
 
 import math
@@ -25,11 +32,16 @@ PROP_BASIS_NAME = "bareesa_basis_name"  # the basis' own name (for display)
 PROP_SCAN = "bareesa_scan"              # the scan an object was registered from
 PROP_VARIFOLD = "bareesa_varifold"
 PROP_CHAMFER = "bareesa_chamfer"
+PROP_DETAIL_CHAMFER = "bareesa_detail_chamfer"  # Chamfer of the detailed mesh (with its Detail key at 1)
 PROP_RESIDUAL = "bareesa_fit_residual"  # mean scan-to-surface distance over the basis' size
 PROP_POOR_FIT = "bareesa_poor_fit"      # the residual is far above the basis' own (its card's fit_check)
 PROP_KEY_SCALE = "bareesa_key_scale"    # per field key: it holds template + k_i h_i; its value is code_i / k_i
 PROP_RANGE = "bareesa_training_stds"    # how far a result's codes go from the training codes (in std)
 PROP_LANDMARK = "bareesa_landmark"      # on an Empty parented to a scan: the basis landmark it marks
+#: The detail keys (not field keys): the detail itself, and how it changes along a path.
+DETAIL_KEY = "Detail"
+DETAIL_CHANGE_KEY = "Detail Change"
+DETAIL_KEYS = (DETAIL_KEY, DETAIL_CHANGE_KEY)
 #: Blender limits shape-key sliders to [-10, 10]; larger codes use a key scale (see above).
 SLIDER_LIMIT = 10.0
 #: A code beyond this is a diverged solve, not a shape.
@@ -288,8 +300,13 @@ def keyframe_codes(obj, names, frames, codes, replace=True):
 
     replace=True rebuilds each curve from these keys only; otherwise keys are added to existing curves.
     """
+    values = np.atleast_2d(_values(obj, names, np.asarray(codes, dtype=np.float64)))
+    _keyframe_values(obj, names, frames, values, replace)
+
+
+def _keyframe_values(obj, names, frames, values, replace=True):
+    """Keyframe the values (T, K) of the shape keys ``names`` (K,) on frames (T,), linear between keys."""
     frames = np.asarray(frames, dtype=np.float64)
-    codes = np.atleast_2d(_values(obj, names, np.asarray(codes, dtype=np.float64)))
     key = obj.data.shape_keys
     blocks = key.key_blocks
     curves = fcurves(key)
@@ -302,9 +319,9 @@ def keyframe_codes(obj, names, frames, codes, replace=True):
         if replace:
             fc.keyframe_points.clear()
             fc.keyframe_points.add(len(frames))
-            fc.keyframe_points.foreach_set("co", np.stack([frames, codes[:, j]], 1).ravel())
+            fc.keyframe_points.foreach_set("co", np.stack([frames, values[:, j]], 1).ravel())
         else:
-            for f, v in zip(frames, codes[:, j]):
+            for f, v in zip(frames, values[:, j]):
                 fc.keyframe_points.insert(float(f), float(v), options={"FAST"})
         for point in fc.keyframe_points:
             point.interpolation = "LINEAR"
@@ -330,6 +347,84 @@ def code_at_frame(obj, names, frame):
     blocks = obj.data.shape_keys.key_blocks
     return key_scales(obj, len(names)) * np.array([curves[_data_path(n)].evaluate(frame) if _data_path(n) in curves
                                       else blocks[n].value for n in names], dtype=np.float64)
+
+
+def set_detail_key(obj, template, detail, name=DETAIL_KEY, value=1.0):
+    """The detail key ``name`` (a new one, or the one there) = template (N, 3) + detail (N, 3), template
+    frame, relative to 'Basis', slider 0-1, at ``value``; the object must have its field keys already."""
+    blocks = obj.data.shape_keys.key_blocks
+    block = blocks.get(name) or obj.shape_key_add(name=name, from_mix=False)
+    block.data.foreach_set("co", (np.asarray(template, dtype=np.float64) + np.asarray(detail, np.float64)).ravel())
+    block.relative_key = blocks["Basis"]
+    _set_slider(block, 0.0, 1.0)
+    block.value = float(value)
+    obj.data.update()
+    return block
+
+
+def detail_keys(obj):
+    """The object's detail keys (``DETAIL_KEYS`` it has, muted ones left out): -> list of ShapeKey."""
+    keys = obj.data.shape_keys if obj is not None and obj.type == "MESH" else None
+    if keys is None:
+        return []
+    return [keys.key_blocks[n] for n in DETAIL_KEYS if n in keys.key_blocks and not keys.key_blocks[n].mute]
+
+
+def _key_offset(block):
+    """co - co of its relative key: -> (N, 3)."""
+    co = np.empty(len(block.data) * 3)
+    block.data.foreach_get("co", co)
+    base = np.empty(len(block.relative_key.data) * 3)
+    block.relative_key.data.foreach_get("co", base)
+    return (co - base).reshape(-1, 3)
+
+
+def detail_of(obj):
+    """The off-basis detail (N, 3), template frame, that the object's detail keys add as they are now: the sum
+    of (co - Basis co) x value over them; None when it has none or all are at 0."""
+    detail = None
+    for block in detail_keys(obj):
+        if block.value != 0.0:
+            detail = block.value * _key_offset(block) + (0.0 if detail is None else detail)
+    return detail
+
+
+def write_detail(obj, template, frames, detail, times):
+    """Write detail (T, N, 3) carried along frames (T,) at path times (T,) as detail keys: 'Detail' = the
+    first frame's detail at 1 and, when it changes, 'Detail Change' = the last frame's minus the first's,
+    keyed (times - times[0]) / (times[-1] - times[0]) with linear keys. Exact on every frame for detail
+    linear in time (``latent.detail_along``, how the solver carries it) and in between."""
+    detail = np.asarray(detail, dtype=np.float64)
+    set_detail_key(obj, template, detail[0])
+    change = detail[-1] - detail[0]
+    if len(detail) < 2 or not np.any(change):
+        return
+    times = np.asarray(times, dtype=np.float64)
+    set_detail_key(obj, template, change, DETAIL_CHANGE_KEY, 0.0)
+    _keyframe_values(obj, [DETAIL_CHANGE_KEY], frames, ((times - times[0]) / (times[-1] - times[0]))[:, None])
+
+
+def continue_detail(obj, f0, f1, frames):
+    """Keyframe the object's animated detail keys on frames (K,) after f1, their values continued along the
+    straight line through their values at f0 and f1 (so the detail is continued linearly, as the solver's
+    ``extrapolate`` continues it); widens their sliders. Returns the names of keys that would pass Blender's
+    slider limit (+-10), left as they are; nothing is keyed then."""
+    curves = fcurves(obj.data.shape_keys) if obj.data.shape_keys is not None else {}
+    animated = [b for b in detail_keys(obj) if _data_path(b.name) in curves]
+    frames = np.asarray(frames, dtype=np.float64)
+    values = {}
+    for block in animated:
+        fc = curves[_data_path(block.name)]
+        v0, v1 = fc.evaluate(f0), fc.evaluate(f1)
+        values[block.name] = v1 + (frames - f1) / (f1 - f0) * (v1 - v0)
+    too_far = [n for n, v in values.items() if np.abs(v).max(initial=0.0) > SLIDER_LIMIT]
+    if too_far:
+        return too_far
+    for block in animated:
+        v = values[block.name]
+        _set_slider(block, min(block.slider_min, math.floor(v.min())), max(block.slider_max, math.ceil(v.max())))
+        _keyframe_values(obj, [block.name], frames, v[:, None], replace=False)
+    return []
 
 
 def similarity_inverse_matrix(similarity):

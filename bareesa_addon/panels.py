@@ -3,7 +3,8 @@
 import bpy
 
 from . import jobs
-from .convert import PROP_BASIS, PROP_BASIS_NAME, PROP_CHAMFER, PROP_POOR_FIT, PROP_RANGE, PROP_VARIFOLD
+from .convert import (PROP_BASIS, PROP_BASIS_NAME, PROP_CHAMFER, PROP_DETAIL_CHAMFER, PROP_POOR_FIT, PROP_RANGE,
+                      PROP_VARIFOLD)
 from .operators.common import TRAINING_STDS
 from .preferences import OPTIONAL_MODULES, dependency_status
 from .properties import OTHER_BASIS
@@ -54,6 +55,8 @@ class BAREESA_PT_main(_Section, bpy.types.Panel):
             if PROP_CHAMFER in obj:
                 box.label(text=f"Chamfer {length_text(context, obj[PROP_CHAMFER])}   "
                                f"varifold {obj.get(PROP_VARIFOLD, 0.0):.3g}")
+            if PROP_DETAIL_CHAMFER in obj:
+                box.label(text=f"With detail: Chamfer {length_text(context, obj[PROP_DETAIL_CHAMFER])}")
             if obj.get(PROP_POOR_FIT, False):
                 box.label(text="Poor fit: far from the scan for this basis", icon="ERROR")
             if obj.get(PROP_RANGE, 0.0) > TRAINING_STDS:
@@ -91,6 +94,7 @@ class BAREESA_PT_register(_Section, bpy.types.Panel):
         col.prop(s, "prealign")
         col.prop(s, "pose_search")
         col.prop(s, "retry_poor_fits")
+        col.prop(s, "detail_layer")
         col.prop(s, "registration_settings")
         obj = context.active_object
         if obj is not None and obj.type == "MESH":

@@ -89,6 +89,10 @@ class BareEsaSettings(bpy.types.PropertyGroup):
     retry_poor_fits: BoolProperty(name="Retry Poor Fits", default=True,
                                   description="Register a fit far from the scan again from other alignments "
                                               "(most often a body registered facing backwards)")
+    detail_layer: BoolProperty(name="Detail Layer", default=True,
+                               description="After the basis fit, also fit the scan's own detail the basis cannot "
+                                           "make: one 'Detail' shape key (0-1) on the registered object; off: "
+                                           "the pure basis fit")
     registration_settings: StringProperty(name="Settings", default="",
                                           description="Further registration settings, KEY=VALUE separated by ';' "
                                                       "(e.g. poses.finalists=3; solve.memory=50): the names "

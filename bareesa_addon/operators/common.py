@@ -77,10 +77,10 @@ def metric(context, basis):
 
 
 def registration_settings(context):
-    """The panel's registration settings beyond schedule and pre-alignment (pose search, retries, the Settings
-    field's KEY=VALUE items): -> dict of ``RegistrationConfig`` overrides."""
+    """The panel's registration settings beyond schedule and pre-alignment (pose search, retries, detail layer,
+    the Settings field's KEY=VALUE items): -> dict of ``RegistrationConfig`` overrides."""
     s = settings(context)
-    out = {"retry": bool(s.retry_poor_fits)}
+    out = {"retry": bool(s.retry_poor_fits), "detail.enabled": bool(s.detail_layer)}
     if not s.pose_search:
         out["poses.candidates"] = None
     out.update(solver.module("registration.config").parse_settings(s.registration_settings))
@@ -184,6 +184,26 @@ def object_input(context, obj, basis):
     if is_registered(obj):
         return wf.KnownCode(registered_code(obj, basis, solver.field_names(basis)))
     return scan_input(context, obj, basis)
+
+
+def object_detail(obj, basis):
+    """The off-basis detail (N, 3) a registered object adds with its detail keys as they are now
+    (``convert.detail_of``): what a ``KnownCode`` of it leaves out; None for a scan or an object without."""
+    if not is_registered(obj):
+        return None
+    detail = cv.detail_of(obj)
+    return None if detail is None or detail.shape != basis.template.shape else detail
+
+
+def carried_detail(own, ends, times):
+    """The inputs' off-basis detail carried along a path, as ``workflows.path_between`` and ``extrapolate``
+    carry it: each end's own (``object_detail`` of a registered object) or else the solve's (a scan's detail
+    layer, ``Code.detail``), blended along times (T,) by ``latent.detail_along`` when both ends have some:
+    -> (T, N, 3), or None."""
+    details = [mine if mine is not None else end.detail for mine, end in zip(own, ends)]
+    if any(d is None for d in details):
+        return None
+    return solver.module("latent").detail_along(*details, times)
 
 
 #: The training range of a code: mean +- this many standard deviations of the basis' training codes
@@ -312,12 +332,19 @@ def sorted_meshes(collection):
     return sorted((o for o in collection.all_objects if o.type == "MESH"), key=lambda o: cv.natural_key(o.name))
 
 
-def add_registered(context, basis, ref, scan, registration, collection=None):
-    """The registered object of a scan (registration: code, transform, varifold, chamfer): template
-    topology, keys = code, placed over the scan."""
+def add_registered(context, basis, ref, scan, registration, collection=None, detail=None):
+    """The registered object of a scan (registration: code, transform, varifold, chamfer; detail (N, 3) its
+    detail layer, template frame, or None): template topology, keys = code, a 'Detail' key at 1 with the
+    detail, placed over the scan (the template frame carried into the scan's by the inverse transform, so the
+    object shows the registered mesh, detailed when there is detail, exactly where the solver put it)."""
     obj = template_object(context, basis, ref, f"{scan.name}_registered",
                           collection or (scan.users_collection[0] if scan.users_collection else None),
                           code=registration.code)
+    if detail is not None:
+        cv.set_detail_key(obj, basis.template, detail)
+        report = getattr(registration, "detail_report", None) or {}
+        if report.get("chamfer") is not None:
+            obj[cv.PROP_DETAIL_CHAMFER] = float(report["chamfer"])
     obj.matrix_world = scan.matrix_world @ cv.similarity_inverse_matrix(registration.transform)
     obj[cv.PROP_SCAN] = scan.name
     obj[cv.PROP_VARIFOLD] = float(registration.varifold)
@@ -330,11 +357,13 @@ def add_registered(context, basis, ref, scan, registration, collection=None):
 
 
 def check_codes(codes):
-    """Refuse non-finite codes or registrations (list of workflows.Code) before anything is written."""
+    """Refuse non-finite codes, registrations or detail (list of workflows.Code) before anything is written."""
     for code in codes:
         cv.check_code(code.code)
         if code.registration is not None and not np.isfinite(code.registration.vertices).all():
             raise cv.ConversionError("the registration diverged (non-finite vertices); nothing was written")
+        if code.detail is not None and not np.isfinite(code.detail).all():
+            raise cv.ConversionError("the detail layer diverged (non-finite displacements); nothing was written")
 
 
 def first_frame(context):

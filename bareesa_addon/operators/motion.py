@@ -1,4 +1,10 @@
-"""Transfer Motion."""
+"""Transfer Motion.
+
+The identity's off-basis detail goes onto the new object as ``workflows.Transfer.detail`` carries it (the
+same on every frame): its detail keys as they are now (a registered object, ``convert.detail_of``) or its
+detail layer (a scan registered by the solve), one 'Detail' key at 1. The motion's own detail stays with
+the body that made it.
+"""
 
 import bpy
 import numpy as np
@@ -7,8 +13,8 @@ from bpy.props import StringProperty
 from .. import convert as cv
 from ..jobs import SolveOperator, Task
 from .common import (TRAINING_STDS, add_registered, check_codes, common_basis, find_object, first_frame, frame_range,
-                     is_registered, object_input, refuse, select_only, selected_meshes, settings, solve_options,
-                     sorted_meshes, template_object, training_excess, workflows, write_keys)
+                     is_registered, object_detail, object_input, refuse, select_only, selected_meshes, settings,
+                     solve_options, sorted_meshes, template_object, training_excess, workflows, write_keys)
 
 
 def motion_objects(source, collection):
@@ -52,7 +58,8 @@ def motion_frames(context, objects, per_object, basis):
 
 
 class BAREESA_OT_transfer_motion(SolveOperator, bpy.types.Operator):
-    """Give the motion of an animated mesh (no armature needed) to another body's identity, as a new object"""
+    """Give the motion of an animated mesh (no armature needed) to another body's identity, as a new object
+    with the identity's detail"""
 
     bl_idname = "bareesa.transfer_motion"
     bl_label = "Transfer Motion"
@@ -88,6 +95,7 @@ class BAREESA_OT_transfer_motion(SolveOperator, bpy.types.Operator):
         basis.group_slice(group)  # an unknown group is reported now
         frames_in, frames = motion_frames(context, objects, collection is not None, basis)
         target_in = object_input(context, target, basis)
+        own = object_detail(target, basis)
         options = solve_options(context, basis)
         target_name = target.name
         wf = workflows()
@@ -101,13 +109,17 @@ class BAREESA_OT_transfer_motion(SolveOperator, bpy.types.Operator):
             body = find_object(target_name)
             made = []
             if result.identity.registration is not None:  # a scan: its fit is a new object too
-                body = add_registered(context, basis, ref, body, result.identity.registration)
+                body = add_registered(context, basis, ref, body, result.identity.registration,
+                                      detail=result.identity.detail)
                 made.append(body)
             coll = body.users_collection[0] if body.users_collection else None
             obj = template_object(context, basis, ref, f"{body.name}_motion", coll, code=result.motion[0],
                                   hint=result.motion)
             obj.matrix_world = body.matrix_world
             write_keys(obj, basis, frames, result.motion)
+            detail = own if own is not None else result.identity.detail
+            if detail is not None:
+                cv.set_detail_key(obj, basis.template, detail)
             excess = training_excess(basis, result.motion)
             obj[cv.PROP_RANGE] = excess
             select_only(context, made + [obj])

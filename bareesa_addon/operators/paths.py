@@ -1,4 +1,14 @@
-"""Interpolate, Extrapolate and (Geodesic) Distance."""
+"""Interpolate, Extrapolate and (Geodesic) Distance.
+
+The off-basis detail of the inputs goes along a path as the solver carries it (``workflows.path_between``,
+``extrapolate``: linearly in time, ``latent.detail_along``, when both ends have some). An input's detail is
+its detail keys as they are now (a registered object: ``convert.detail_of``) or its detail layer (a scan
+registered by the solve). On the new object it is two keys (``convert.write_detail``): 'Detail' = the first
+frame's at 1 and 'Detail Change' = the last frame's minus the first's, keyed from 0 to 1 with linear keys,
+which is the carried detail exactly on every frame. Extrapolating an object's keyframes keys its animated
+detail keys on the new frames along the line through their values at the last two keyframes
+(``convert.continue_detail``): the same linear continuation; static ones hold, as a constant detail does.
+"""
 
 import csv
 
@@ -10,14 +20,26 @@ from .. import convert as cv
 from .. import solver
 from ..jobs import SolveOperator, Task
 from ..properties import EXTRAPOLATE_SOURCES
-from .common import (add_registered, check_codes, common_basis, find_object, first_frame, frame_range,
-                     has_pair_or_selection, is_registered, new_collection, object_basis, object_input, output_path,
-                     own_or_panel, pick_pair, refuse, registered_code, select_only, settings, solve_options,
-                     sorted_meshes, template_object, workflows, write_keys)
+from .common import (add_registered, carried_detail, check_codes, common_basis, find_object, first_frame,
+                     frame_range, has_pair_or_selection, is_registered, new_collection, object_basis, object_detail,
+                     object_input, output_path, own_or_panel, pick_pair, refuse, registered_code, select_only,
+                     settings, solve_options, sorted_meshes, template_object, workflows, write_keys)
+
+
+def detail_note(detail, own, ends, names):
+    """What a path's report says of the detail it carries (detail (T, N, 3) or None; own, ends and names of
+    its two inputs)."""
+    if detail is not None:
+        return "; with the inputs' detail (Detail keys)"
+    has = [mine is not None or end.detail is not None for mine, end in zip(own, ends)]
+    if any(has):
+        return f"; without detail: only '{names[has.index(True)]}' has some"
+    return ""
 
 
 class BAREESA_OT_interpolate(SolveOperator, bpy.types.Operator):
-    """Geodesic between two registered objects (or scans) keyframed on every frame, evenly paced"""
+    """Geodesic between two registered objects (or scans) keyframed on every frame, evenly paced, with their
+    detail carried along"""
 
     bl_idname = "bareesa.interpolate"
     bl_label = "Interpolate"
@@ -37,6 +59,7 @@ class BAREESA_OT_interpolate(SolveOperator, bpy.types.Operator):
         a, b = pick_pair(context, self.object_a, self.object_b)
         basis, ref = common_basis(context, (a, b))
         inputs = [object_input(context, o, basis) for o in (a, b)]
+        own = [object_detail(o, basis) for o in (a, b)]
         frames = frame_range(context)
         options, anchor = solve_options(context, basis), own_or_panel(self, context, "anchor")
         make_meshes = settings(context).make_collection
@@ -52,18 +75,21 @@ class BAREESA_OT_interpolate(SolveOperator, bpy.types.Operator):
             path = found.frames
             cv.check_code(path, "the geodesic")
             a_obj, b_obj = (find_object(n) for n in names_ab)
+            ts = np.linspace(0.0, 1.0, len(frames))  # path_between's times of the frames
+            detail = carried_detail(own, found.ends, ts)
             made = []
             ends = []
             for obj, end in zip((a_obj, b_obj), found.ends):
                 if end.registration is not None:
-                    made.append(add_registered(context, basis, ref, obj, end.registration))
+                    made.append(add_registered(context, basis, ref, obj, end.registration, detail=end.detail))
                     ends.append(made[-1].matrix_world.copy())
                 else:
                     ends.append(obj.matrix_world.copy())
             name = f"{a_obj.name}_to_{b_obj.name}"
             obj = template_object(context, basis, ref, name, code=path[0], hint=path)
             write_keys(obj, basis, frames, path)
-            ts = np.linspace(0.0, 1.0, len(frames))
+            if detail is not None:
+                cv.write_detail(obj, basis.template, frames, detail, ts)
             matrices = [cv.blend_matrices(ends[0], ends[1], t) for t in ts]
             cv.keyframe_transforms(obj, frames, matrices)
             settings(context).distance = found.distance
@@ -71,19 +97,22 @@ class BAREESA_OT_interpolate(SolveOperator, bpy.types.Operator):
             if make_meshes:
                 coll = new_collection(context, f"{name}_frames")
                 verts = basis.template + np.tensordot(path, basis.fields, axes=1)
+                if detail is not None:
+                    verts = verts + detail
                 for f, v, m in zip(frames, verts, matrices):
                     frame_obj = cv.new_mesh_object(f"{name}_{int(f):04d}", v, basis.faces, coll,
                                                    uv=basis.extras.get("template_uv"))
                     frame_obj.matrix_world = m
             select_only(context, made + [obj])
             return (f"'{name}': geodesic keyframed on frames {frames[0]}-{frames[-1]}, "
-                    f"distance {found.distance:.4g}")
+                    f"distance {found.distance:.4g}{detail_note(detail, own, found.ends, names_ab)}")
 
         return Task("interpolate", solve, apply)
 
 
 class BAREESA_OT_extrapolate(SolveOperator, bpy.types.Operator):
-    """Continue a motion along the geodesic: from two objects (other -> active) or the last two keyframes"""
+    """Continue a motion along the geodesic: from two objects (other -> active) or the last two keyframes, with
+    its detail continued"""
 
     bl_idname = "bareesa.extrapolate"
     bl_label = "Extrapolate"
@@ -116,6 +145,8 @@ class BAREESA_OT_extrapolate(SolveOperator, bpy.types.Operator):
             basis, ref = common_basis(context, (a, b))
             names = solver.field_names(basis)
             alpha0, alpha1 = registered_code(a, basis, names), registered_code(b, basis, names)
+            own = [object_detail(o, basis) for o in (a, b)]
+            names_ab = (a.name, b.name)
             target_name = None
             frames = first_frame(context) + s.extrapolate_spacing * np.arange(s.extrapolate_steps + 2)
             label = f"{a.name}_{b.name}_extrapolated"
@@ -133,6 +164,7 @@ class BAREESA_OT_extrapolate(SolveOperator, bpy.types.Operator):
                                          "give a direction")
             f0, f1 = keyed[-2], keyed[-1]
             alpha0, alpha1 = cv.code_at_frame(obj, names, f0), cv.code_at_frame(obj, names, f1)
+            own, names_ab = [None, None], None
             target_name = obj.name
             frames = f1 + (f1 - f0) * np.arange(-1, s.extrapolate_steps + 1)
             label = obj.name
@@ -152,14 +184,25 @@ class BAREESA_OT_extrapolate(SolveOperator, bpy.types.Operator):
                 self.report({"WARNING"}, f"the motion's speed varied at new frame{'s' * (len(relaxed) > 1)} "
                                          f"{', '.join(map(str, relaxed))}: the body passes a creased, almost flat "
                                          "joint there (kept at the finest time step)")
+            note = ""
             if target_name is None:
+                times = np.arange(len(path), dtype=np.float64)  # extrapolate's: the inputs at 0 and 1
+                detail = carried_detail(own, motion.ends, times)
                 obj = template_object(context, basis, ref, label, code=path[0], hint=path)
                 write_keys(obj, basis, frames, path)
+                if detail is not None:
+                    cv.write_detail(obj, basis.template, frames, detail, times)
+                note = detail_note(detail, own, motion.ends, names_ab)
                 select_only(context, [obj])
             else:
                 obj = find_object(target_name)
                 write_keys(obj, basis, frames[2:], path[2:], replace=False)
-            return f"'{obj.name}': {n_new} extrapolated keyframes up to frame {int(frames[-1])}"
+                held = cv.continue_detail(obj, frames[0], frames[1], frames[2:])
+                if held:
+                    self.report({"WARNING"}, f"'{obj.name}': the detail was not continued: {', '.join(held)} "
+                                             f"would pass Blender's slider limit ({cv.SLIDER_LIMIT:g}); it holds "
+                                             "its last keyed value")
+            return f"'{obj.name}': {n_new} extrapolated keyframes up to frame {int(frames[-1])}{note}"
 
         return Task("extrapolate", solve, apply)
 

@@ -11,8 +11,20 @@ from .common import (add_registered, check_codes, find_object, load_basis, refus
                      selected_meshes, settings, solve_options, template_object, workflows, write_code)
 
 
+def detail_note(registration):
+    """What the report says of a registration's detail layer: its detailed Chamfer, why it was left out, or
+    nothing (turned off, or a registration without one)."""
+    report = getattr(registration, "detail_report", None) or {}
+    if getattr(registration, "detail", None) is not None:
+        return f", detailed Chamfer {report['chamfer']:.3g}" if report.get("chamfer") is not None else ""
+    if report.get("skipped") and report["skipped"] != "turned off":
+        return f", no detail layer ({report['skipped']})"
+    return ""
+
+
 class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
-    """Register each selected scan (any mesh): a new object in template topology whose shape keys are its code"""
+    """Register each selected scan (any mesh): a new object in template topology whose shape keys are its code,
+    and a 'Detail' key with the scan's own detail the basis cannot make (the panel's Detail Layer)"""
 
     bl_idname = "bareesa.register_scan"
     bl_label = "Register Scans"
@@ -50,7 +62,8 @@ class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
                 try:
                     results = solver.module("batch").register_scans(basis_file, inputs, options, workers=processes,
                                                                     callback=callback, cancel=cancel)
-                    return [r if isinstance(r, Exception) else wf.Code(r.code, registration=r) for r in results]
+                    return [r if isinstance(r, Exception) else wf.Code(r.code, detail=r.detail, registration=r)
+                            for r in results]
                 except solver.module("errors").WorkersUnavailable as err:
                     notes.append(f"{err}: registered one at a time in Blender instead")
             return wf.codes_of(basis, inputs, options, callback, cancel)
@@ -91,7 +104,8 @@ class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
             codes = [r for _, r in kept]
             check_codes(codes)
             scan_objects = [find_object(n) for n, _ in kept]
-            made = [add_registered(context, basis, ref, scan, c.registration) for scan, c in zip(scan_objects, codes)]
+            made = [add_registered(context, basis, ref, scan, c.registration, detail=c.detail)
+                    for scan, c in zip(scan_objects, codes)]
             for note in notes:
                 self.report({"WARNING"}, note)
             for name, err in failed:
@@ -110,6 +124,6 @@ class BAREESA_OT_register_scan(SolveOperator, bpy.types.Operator):
                 self.report({"WARNING"}, f"skipped {len(skipped)} selected object{'s' * (len(skipped) > 1)} that "
                                          f"{'are' if len(skipped) > 1 else 'is'} not a mesh: {', '.join(skipped)}")
             return "; ".join(f"{o.name}: varifold {c.registration.varifold:.3g}, Chamfer {c.registration.chamfer:.3g}"
-                             for o, c in zip(made, codes))
+                             f"{detail_note(c.registration)}" for o, c in zip(made, codes))
 
         return Task(f"register {len(scans)} scan{'s' * (len(scans) > 1)}", solve, apply, show, clear)

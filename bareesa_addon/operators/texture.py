@@ -8,6 +8,9 @@ mixing nodes). The emission pass is exactly that colour: no lights, no Fresnel, 
 transmission weighting (which a DIFFUSE/COLOR bake of a Principled BSDF applies), and it works the
 same for a scan whose colour attribute is not wired to any material. The bake runs on the main
 thread (a few seconds at few samples); everything it changes is put back, also when it fails.
+
+It bakes onto the registered object as Blender shows it (its shape keys mixed, as ``fit_distance``
+measures it too): with its 'Detail' key at 1, onto the detailed surface.
 """
 
 import re

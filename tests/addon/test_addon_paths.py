@@ -5,7 +5,7 @@ import csv
 import numpy as np
 import pytest
 
-from tests.addon.support import add_mesh, bpy, code_surface, key_values, select, snapshot
+from tests.addon.support import add_mesh, bpy, code_surface, key_values, mesh_verts, select, snapshot
 
 NAMES = ["pose_000", "pose_001", "shape_000", "shape_001"]
 A = np.array([0.2, -0.3, 0.4, 0.1])
@@ -227,6 +227,107 @@ def test_extrapolate_without_keyframes_reports_and_changes_nothing(scene):
     assert snapshot() == before
 
 
+# ------------------------------------------------------------------------------ detail along paths
+
+
+def some_detail(basis, k):
+    """A smooth off-basis displacement (N, 3) of the template, different for each k."""
+    return 0.04 * (k + 1) * np.sin((2.0 + k) * basis.template[:, [1, 2, 0]] + k)
+
+
+def with_detail(obj, basis, detail, value=1.0):
+    """Give a registered object a 'Detail' key (as Register Scans does) at ``value``."""
+    from bareesa_addon import convert
+
+    convert.set_detail_key(obj, basis.template, detail, value=value)
+    return obj
+
+
+def local_at(obj, frame):
+    """The object's evaluated (shape-key mixed) vertices at a frame, its local frame."""
+    from bareesa_addon import convert
+
+    bpy.context.scene.frame_set(int(frame))
+    return convert.evaluated_mesh(obj, bpy.context.evaluated_depsgraph_get())[0]
+
+
+def test_interpolate_carries_the_ends_detail_keys_along_the_frames(scene, tiny, capfd):
+    """Both ends' detail keys (times their values) are blended along the frames as path_between carries detail
+    (latent.detail_along): 'Detail' = the start's, 'Detail Change' keyed 0 -> 1; the codes are the same as
+    without detail, and the frame meshes carry it too."""
+    from bareesa.latent import detail_along
+
+    basis = tiny[0]
+    d_a, d_b = some_detail(basis, 0), some_detail(basis, 1)
+    with_detail(registered("A", A), basis, d_a)
+    with_detail(registered("B", B), basis, d_b, value=0.5)  # a key at 0.5 gives half its detail
+    scene.bareesa.make_collection = True
+    capfd.readouterr()
+    assert bpy.ops.bareesa.interpolate(object_a="A", object_b="B") == {"FINISHED"}
+    assert "with the inputs' detail" in capfd.readouterr().out
+    path_obj = bpy.data.objects["A_to_B"]
+    blocks = path_obj.data.shape_keys.key_blocks
+    assert [k.name for k in blocks] == ["Basis"] + NAMES + ["Detail", "Detail Change"]
+    frames, codes = keyed(path_obj)  # the field keys only
+    assert list(frames) == [1, 2, 3, 4, 5, 6]
+    assert np.allclose(codes[0], A, atol=1e-6) and np.allclose(codes[-1], B, atol=1e-6)
+    detail = detail_along(d_a, 0.5 * d_b, np.linspace(0, 1, 6))
+    for k, f in enumerate(frames):
+        np.testing.assert_allclose(local_at(path_obj, f), decode(basis, codes[k]) + detail[k], atol=1e-5)
+    meshes = sorted(bpy.data.collections["A_to_B_frames"].objects, key=lambda o: o.name)
+    np.testing.assert_allclose(mesh_verts(meshes[2]), decode(basis, codes[2]) + detail[2], atol=1e-5)
+    # the same codes as a path without detail
+    bpy.data.objects["B"].data.shape_keys.key_blocks["Detail"].value = 0.0
+    scene.bareesa.make_collection = False
+    assert bpy.ops.bareesa.interpolate(object_a="A", object_b="B") == {"FINISHED"}
+    assert "without detail: only 'A' has some" in capfd.readouterr().out
+    plain = bpy.data.objects["A_to_B.001"]
+    assert [k.name for k in plain.data.shape_keys.key_blocks] == ["Basis"] + NAMES
+    np.testing.assert_allclose(keyed(plain)[1], codes, atol=1e-6)
+
+
+def test_extrapolate_two_objects_continues_their_detail_linearly(scene, tiny):
+    from bareesa.latent import detail_along
+
+    basis = tiny[0]
+    d_a, d_b = some_detail(basis, 0), some_detail(basis, 1)
+    with_detail(registered("A", 0.5 * A), basis, d_a)
+    with_detail(registered("B", 0.5 * B), basis, d_b)
+    scene.bareesa.extrapolate_steps, scene.bareesa.extrapolate_spacing = 2, 5
+    assert bpy.ops.bareesa.extrapolate(source="OBJECTS", object_a="A", object_b="B") == {"FINISHED"}
+    obj = bpy.data.objects["A_B_extrapolated"]
+    frames, codes = keyed(obj)
+    assert list(frames) == [1, 6, 11, 16]
+    detail = detail_along(d_a, d_b, np.arange(4))  # the inputs at times 0 and 1, continued to 3
+    for k, f in enumerate(frames):
+        np.testing.assert_allclose(local_at(obj, f), decode(basis, codes[k]) + detail[k], atol=1e-5)
+    change = obj.data.shape_keys.key_blocks["Detail Change"]
+    assert (change.slider_min, change.slider_max) == (0, 1)
+
+
+def test_extrapolate_keyframes_continues_the_animated_detail(scene, tiny):
+    """On keyframes, an animated 'Detail Change' is keyed on the new frames along its line through the last two
+    keyframes (the detail continued as extrapolate continues it); the static 'Detail' holds."""
+    from bareesa_addon import convert
+
+    basis = tiny[0]
+    d, change = some_detail(basis, 0), some_detail(basis, 1)
+    obj = with_detail(registered("anim", A), basis, d)
+    convert.keyframe_codes(obj, NAMES, [1, 5], [0.5 * A, 0.5 * B])
+    key = convert.set_detail_key(obj, basis.template, change, "Detail Change", 0.0)
+    for frame, value in ((1, 0.0), (5, 0.4)):
+        key.value = value
+        key.keyframe_insert("value", frame=frame)
+    scene.bareesa.extrapolate_steps = 2
+    select(obj)
+    assert bpy.ops.bareesa.extrapolate() == {"FINISHED"}
+    frames, codes = keyed(obj)
+    assert list(frames) == [1, 5, 9, 13]
+    for k, f in enumerate(frames):
+        np.testing.assert_allclose(local_at(obj, f), decode(basis, codes[k]) + d + 0.4 * k * change, atol=1e-5)
+    assert obj.data.shape_keys.key_blocks["Detail Change"].slider_max >= 1.2
+
+
 # ------------------------------------------------------------------------------ motion transfer
 
 POSES = np.array([[0.0, 0.0], [0.3, -0.2], [0.6, -0.1], [0.4, 0.5]])
@@ -249,6 +350,26 @@ def test_transfer_motion_from_shape_key_animation_keeps_pose_and_target_identity
     assert list(frames) == [1, 2, 3, 4]
     assert np.allclose(codes, expected_motion(), atol=1e-6)
     assert scene.frame_current == 1
+
+
+def test_transfer_motion_gives_the_new_object_the_identitys_detail(scene, tiny):
+    """The identity's detail (its Detail key times its value) is one 'Detail' key at 1 on the new object, on
+    every frame; the motion's codes are as without it."""
+    from bareesa_addon import convert
+
+    basis = tiny[0]
+    src = with_detail(registered("dancer", A), basis, some_detail(basis, 1))  # the motion's own: not carried
+    convert.keyframe_codes(src, NAMES, [1, 2, 3, 4], np.hstack([POSES, np.tile([0.2, 0.2], (4, 1))]))
+    d = some_detail(basis, 0)
+    with_detail(registered("target", np.r_[0.1, 0.1, IDENTITY]), basis, d, value=0.7)
+    scene.bareesa.frame_start, scene.bareesa.frame_end = 1, 4
+    assert bpy.ops.bareesa.transfer_motion(source="dancer", target="target") == {"FINISHED"}
+    obj = bpy.data.objects["target_motion"]
+    assert [k.name for k in obj.data.shape_keys.key_blocks] == ["Basis"] + NAMES + ["Detail"]
+    frames, codes = keyed(obj)
+    assert np.allclose(codes, expected_motion(), atol=1e-6)
+    for k, f in enumerate(frames):
+        np.testing.assert_allclose(local_at(obj, f), decode(basis, codes[k]) + 0.7 * d, atol=1e-5)
 
 
 def animated_mesh(name, basis, code_from, code_to):

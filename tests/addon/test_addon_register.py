@@ -21,6 +21,32 @@ def world_verts(obj):
     return v @ m[:3, :3].T + m[:3, 3]
 
 
+def key_co(obj, name):
+    block = obj.data.shape_keys.key_blocks[name]
+    co = np.empty(len(block.data) * 3)
+    block.data.foreach_get("co", co)
+    return co.reshape(-1, 3)
+
+
+def detail_offset(obj):
+    """The 'Detail' key's co - 'Basis' co: -> (N, 3)."""
+    return key_co(obj, "Detail") - key_co(obj, "Basis")
+
+
+def spy_registrations(monkeypatch):
+    """Record every RegistrationResult ``registration.register`` returns: -> the list they go into."""
+    import bareesa.registration as registration
+
+    seen, real = [], registration.register
+
+    def spy(*args, **kwargs):
+        seen.append(real(*args, **kwargs))
+        return seen[-1]
+
+    monkeypatch.setattr(registration, "register", spy)
+    return seen
+
+
 def test_register_scan_in_template_frame_gives_code_as_shape_keys_and_leaves_scan_untouched(scene, tiny):
     _, _, surface = tiny
     verts, faces = code_surface(surface, ALPHA)
@@ -34,13 +60,70 @@ def test_register_scan_in_template_frame_gives_code_as_shape_keys_and_leaves_sca
     after = snapshot()
     assert after["scan"] == before["scan"]
     reg = bpy.data.objects["scan_registered"]
-    assert [k.name for k in reg.data.shape_keys.key_blocks] == ["Basis"] + NAMES
+    assert [k.name for k in reg.data.shape_keys.key_blocks] == ["Basis"] + NAMES + ["Detail"]
     assert np.abs(key_values(reg, NAMES) - ALPHA).max() < 0.1
     assert len(reg.data.vertices) == 42 and reg["bareesa_scan"] == "scan"
     assert reg["bareesa_varifold"] >= 0 and 0 <= reg["bareesa_chamfer"] < 0.5  # vertex sets of two coarse meshes
     # without pre-alignment the registered object sits exactly in the scan's frame
     assert np.allclose(np.array(reg.matrix_world), np.array(scan.matrix_world), atol=1e-6)
     assert reg.select_get() and bpy.context.view_layer.objects.active == reg
+
+
+def test_registered_object_carries_the_detail_layer_as_one_detail_key(scene, tiny, monkeypatch, capfd):
+    """The registration's detail layer is a 'Detail' key (template + detail, slider 0-1, at 1) after the field
+    keys: the object then shows the detailed mesh exactly where the solver put it, its code reads back from
+    the field keys as before, and the report gives the detailed Chamfer."""
+    from bareesa_addon import convert
+
+    _, _, surface = tiny
+    verts, faces = code_surface(surface, ALPHA, subdivisions=2)  # (on 42 vertices the layer flips faces)
+    rot = np.array(Matrix.Rotation(math.radians(50), 3, "Z") @ Matrix.Rotation(math.radians(20), 3, "X"))
+    scan = add_mesh("scan", 1.5 * verts @ rot.T + [0.3, -1.0, 0.2], faces, location=(2.0, 0.0, 1.0))
+    scan.rotation_euler = (0.0, 0.0, math.radians(30))
+    bpy.context.view_layer.update()
+    select(scan)
+    seen = spy_registrations(monkeypatch)
+    capfd.readouterr()
+    assert bpy.ops.bareesa.register_scan() == {"FINISHED"}
+    out = capfd.readouterr().out
+    (res,) = seen
+    assert res.detail is not None and np.abs(res.detail).max() > 1e-3  # a layer that moves the surface
+    assert abs(res.transform.scale - 1 / 1.5) < 0.1  # pre-aligned: the layer goes through the transform
+    reg = bpy.data.objects["scan_registered"]
+    blocks = reg.data.shape_keys.key_blocks
+    assert [k.name for k in blocks] == ["Basis"] + NAMES + ["Detail"]
+    detail = blocks["Detail"]
+    assert detail.relative_key.name == "Basis" and (detail.slider_min, detail.slider_max, detail.value) == (0, 1, 1)
+    np.testing.assert_allclose(detail_offset(reg), res.detail, atol=1e-5)
+    # the code is read from the field keys only (the Detail key is not one of them)
+    assert convert.has_field_keys(reg, NAMES)
+    np.testing.assert_allclose(convert.get_code(reg, NAMES), res.code, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(convert.code_at_frame(reg, NAMES, 1), res.code, rtol=1e-6, atol=1e-6)
+    # shown: the detailed mesh, in the scan's frame as the solver has it (with the key at 0: the basis fit)
+    m = np.array(scan.matrix_world)
+    to_world = lambda v: v @ m[:3, :3].T + m[:3, 3]  # noqa: E731
+    np.testing.assert_allclose(world_verts(reg), to_world(res.detailed_vertices), atol=1e-5)
+    detail.value = 0.0
+    np.testing.assert_allclose(world_verts(reg), to_world(res.vertices), atol=1e-5)
+    assert reg["bareesa_detail_chamfer"] == pytest.approx(res.detail_report["chamfer"])
+    assert f"detailed Chamfer {res.detail_report['chamfer']:.3g}" in out
+
+
+def test_detail_layer_off_registers_the_pure_basis_fit(scene, tiny, monkeypatch, capfd):
+    _, _, surface = tiny
+    select(add_mesh("scan", *code_surface(surface, ALPHA)))
+    scene.bareesa.prealign = False
+    scene.bareesa.detail_layer = False
+    seen = spy_registrations(monkeypatch)
+    capfd.readouterr()
+    assert bpy.ops.bareesa.register_scan() == {"FINISHED"}
+    out = capfd.readouterr().out
+    (res,) = seen
+    assert res.detail is None and res.detail_report["skipped"] == "turned off"
+    reg = bpy.data.objects["scan_registered"]
+    assert [k.name for k in reg.data.shape_keys.key_blocks] == ["Basis"] + NAMES
+    assert "bareesa_detail_chamfer" not in reg and "detailed Chamfer" not in out and "no detail layer" not in out
+    np.testing.assert_allclose(world_verts(reg), res.vertices, atol=1e-5)  # in the scan's frame (at the origin)
 
 
 def test_register_scan_prealigned_overlays_a_moved_rescaled_scan(scene, tiny):
@@ -163,16 +246,20 @@ def test_every_solve_operator_is_undoable(scene):
         assert "UNDO" in cls.bl_options and "REGISTER" in cls.bl_options
 
 
-def test_poor_fit_is_stored_on_the_object_and_reported(scene, tiny, monkeypatch):
-    # the registration's poor-fit flag (the basis card's fit_check) reaches the object and a warning
+def test_poor_fit_is_stored_on_the_object_and_reported(scene, tiny, monkeypatch, capfd):
+    # the registration's poor-fit flag (the basis card's fit_check) reaches the object and a warning; the
+    # detail layer is left out of a poor fit, and the report says so
     import bareesa.registration.multiscale as multiscale
 
     _, _, surface = tiny
     select(add_mesh("scan", *code_surface(surface, ALPHA)))
     scene.bareesa.prealign = False
     monkeypatch.setattr(multiscale, "is_poor_fit", lambda basis, residual: True)
+    capfd.readouterr()
     assert bpy.ops.bareesa.register_scan() == {"FINISHED"}
+    assert "no detail layer (the basis fit is flagged poor)" in capfd.readouterr().out
     reg = bpy.data.objects["scan_registered"]
+    assert "Detail" not in reg.data.shape_keys.key_blocks
     assert reg["bareesa_poor_fit"] is True or reg["bareesa_poor_fit"] == 1
     assert reg["bareesa_fit_residual"] > 0
     monkeypatch.setattr(multiscale, "is_poor_fit", lambda basis, residual: False)
@@ -193,6 +280,7 @@ def test_several_scans_register_in_worker_processes_like_in_blender(scene, tiny)
     assert bpy.ops.bareesa.register_scan(processes=1) == {"FINISHED"}
     serial = {k: key_values(bpy.data.objects[f"scan{k}_registered"], NAMES) for k in range(2)}
     serial_place = {k: np.array(bpy.data.objects[f"scan{k}_registered"].matrix_world) for k in range(2)}
+    serial_detail = {k: detail_offset(bpy.data.objects[f"scan{k}_registered"]) for k in range(2)}
     for k in range(2):
         bpy.data.objects.remove(bpy.data.objects[f"scan{k}_registered"])
     select(*moved)
@@ -201,6 +289,7 @@ def test_several_scans_register_in_worker_processes_like_in_blender(scene, tiny)
         obj = bpy.data.objects[f"scan{k}_registered"]
         np.testing.assert_allclose(key_values(obj, NAMES), serial[k], atol=1e-5)
         np.testing.assert_allclose(np.array(obj.matrix_world), serial_place[k], atol=1e-5)
+        np.testing.assert_allclose(detail_offset(obj), serial_detail[k], atol=1e-4)  # the workers' detail too
     # a one-triangle "scan" beside a real one: refused in its process, the other registered
     tri = add_mesh("tri", np.array([[0.0, 0, 0], [1e-3, 0, 0], [0, 1e-3, 0]]), np.array([[0, 1, 2]]))
     select(moved[0], tri)
@@ -233,15 +322,17 @@ def test_the_panels_registration_settings_reach_the_solve_and_a_bad_one_is_refus
 
     basis = tiny[0]
     settings = scene.bareesa
-    settings.pose_search, settings.retry_poor_fits = False, False
+    settings.pose_search, settings.retry_poor_fits, settings.detail_layer = False, False, False
     settings.registration_settings = "poses.finalists=3; solve.memory=20"
     options = solve_options(bpy.context, basis)
     config = options.registration_config(basis)
-    assert config.poses.candidates is None and config.retry is False
+    assert config.poses.candidates is None and config.retry is False and config.detail.enabled is False
     assert config.poses.finalists == 3 and config.solve.memory == 20
-    settings.pose_search, settings.retry_poor_fits, settings.registration_settings = True, True, ""
+    settings.pose_search, settings.retry_poor_fits, settings.detail_layer = True, True, True
+    settings.registration_settings = ""
     default = solve_options(bpy.context, basis).registration_config(basis)
     assert default.poses.candidates == "auto" and default.retry is True and default.solve.memory != 20
+    assert default.detail.enabled is True
 
     _, _, surface = tiny
     verts, faces = code_surface(surface, ALPHA)

@@ -10,7 +10,8 @@ import pytest
 
 from tests.addon.support import add_mesh, bpy, code_surface, select, tiny_basis
 
-from mathutils.bvhtree import BVHTree  # noqa: E402 (after bpy)
+from mathutils import Matrix  # noqa: E402 (after bpy)
+from mathutils.bvhtree import BVHTree  # noqa: E402
 
 ALPHA = np.array([0.6, -0.4, 0.5, 0.3])
 RESOLUTION = 256  # small: the bake takes a fraction of a second
@@ -342,3 +343,31 @@ def test_a_failed_bake_puts_everything_back_and_leaves_no_file(scene, uv_tiny, t
     o = seen["options"]
     assert o["type"] == "EMIT" and o["use_selected_to_active"] and o["uv_layer"] == "UVMap"
     assert o["max_ray_distance"] == pytest.approx(2 * o["cage_extrusion"]) and o["cage_extrusion"] > 0
+
+
+def test_transfer_texture_bakes_onto_the_surface_with_its_detail_key(scene, uv_tiny, tmp_path):
+    """The bake takes the registered object as shown (its shape keys mixed), so a 'Detail' key at 1 is the
+    surface the scan's colours are baked onto: here a detail that turns the template 90 degrees about z, and
+    a scan of the turned body; the colours match on the detailed surface and not on the basis fit."""
+    from bareesa import synthetic
+    from bareesa_addon import convert
+
+    basis, uv_path = uv_tiny
+    scene.bareesa.basis = str(uv_path)
+    turn = np.array(Matrix.Rotation(math.radians(90), 3, "Z"))
+    reg = template("reg", "scan")
+    convert.set_detail_key(reg, basis.template, basis.template @ turn.T - basis.template)
+    u, faces = synthetic.resampled_sphere(3, seed=3)
+    verts = tiny_basis()[1](u) @ turn.T  # the template's surface, finely meshed, turned
+    scan = add_mesh("scan", verts, faces)
+    attr = scan.data.color_attributes.new("Scan Colour", "BYTE_COLOR", "POINT")
+    attr.data.foreach_set("color_srgb", np.hstack([vertex_pattern(verts), np.ones((len(verts), 1))]).ravel())
+    scene.render.engine = "BLENDER_WORKBENCH"
+    select(reg)
+    path = tmp_path / "detail.png"
+    assert bpy.ops.bareesa.transfer_texture(resolution=RESOLUTION, filepath=str(path)) == {"FINISHED"}
+    right, wrong = colour_errors(reg, scan, path, vertex_pattern)
+    assert right < 0.05 and wrong > 0.1
+    reg.data.shape_keys.key_blocks["Detail"].value = 0.0  # the same image read on the basis fit's surface
+    basis_fit, _ = colour_errors(reg, scan, path, vertex_pattern)
+    assert basis_fit > 0.1 and basis_fit > 4 * right
