@@ -477,3 +477,31 @@ def test_pair_verbs_give_each_raw_scan_its_own_mask_and_landmarks(capsys, tmp_pa
     rc, _, err = run(capsys, "interpolate", tmp_path / "t.ply", tmp_path / "b.ply", "--basis", tmp_path / "s.npz",
                      "--ignore-a", tmp_path / "mask.npy", "-o", tmp_path / "frames")
     assert rc == 2 and "--ignore-a applies to raw scans only" in err and not (tmp_path / "frames").exists()
+
+
+def test_register_writes_the_detailed_mesh_the_basis_fit_beside_it_and_no_detail_on_request(capsys, tmp_path):
+    from bareesa.basis_io import save_basis
+    from bareesa.mesh import load_mesh
+
+    basis, surface = synthetic.smooth_sphere_basis(subdivisions=3, n_fields=6, seed=0)
+    save_basis(tmp_path / "s.npz", basis)
+    alpha = 0.5 * np.random.default_rng(1).normal(size=6)
+    u, faces = synthetic.resampled_sphere(4, seed=3)
+    bump = 0.06 * np.exp(-((u - np.array([0.0, 0.6, 0.8])) ** 2).sum(1) / 0.15)[:, None] * u
+    save_mesh(tmp_path / "scan.ply", surface(u, alpha) + bump, faces)
+    sphere_detail = ["--set", "detail.sigmas=[0.05]", "--set", "detail.weights=[1000]"]
+    rc, out, err = run(capsys, "register", tmp_path / "scan.ply", "--basis", tmp_path / "s.npz", "-o",
+                       tmp_path / "reg.ply", "--json", *sphere_detail)
+    assert rc == 0, err
+    res = json.loads(out)
+    assert res["detail"]["kept"] and res["detail"]["chamfer"] < res["chamfer"]
+    detailed, detailed_faces = load_mesh(tmp_path / "reg.ply")
+    fit, _ = load_mesh(tmp_path / "reg.basis.ply")
+    detail = np.load(tmp_path / "reg.detail.npy")
+    assert np.array_equal(detailed_faces, basis.faces) and detail.shape == basis.template.shape
+    assert np.abs(detailed - fit).max() > 0.02  # the bump, which only the detailed mesh has
+    rc, out, err = run(capsys, "register", tmp_path / "scan.ply", "--basis", tmp_path / "s.npz", "-o",
+                       tmp_path / "plain.ply", "--no-detail", *sphere_detail)
+    assert rc == 0, err
+    assert (tmp_path / "plain.ply").exists() and not (tmp_path / "plain.basis.ply").exists()
+    assert not (tmp_path / "plain.detail.npy").exists() and "detailed" not in out

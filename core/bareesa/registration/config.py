@@ -168,12 +168,16 @@ class DetailFit:
 
     enabled: fit it (off: the pure basis fit); kernel: its varifold's (oriented, "linear": the scan's pieces
     are turned like the basis fit, and surfaces facing each other across a narrow gap, toes or fingers, are
-    not pulled into one another); sigmas: its varifold's, coarse to fine, relative to the basis'
-    scale, none finer than ``spacing`` x the scan's sampling (``detail.scan_spacing``); weights: of the data
-    term at each sigma; reach: template faces farther than this x the first sigma from the scan are left out
-    of the data term (holes); steps: of the straight path whose H2 energy regularises it; max_iter, ftol,
-    plateau_window, plateau, memory: each sigma's preconditioned L-BFGS; tol: kernel truncation; scan_cell: the
-    scan summed over cells of this x sigma; flip_cos, collapse: a face whose normal turns past this cosine
+    not pulled into one another); sigmas: its levels' varifold sigmas, relative to the basis'
+    scale, none finer than ``spacing`` x the scan's sampling (``detail.scan_spacing``); weights, max_iter,
+    subdivided: each level's data term weight, L-BFGS iterations, and whether its data term sees each face as
+    its four midpoint sub-faces (finer quadrature: the last level; a tuple shorter than sigmas repeats its
+    last); reach: template faces farther than this x the first sigma from the scan are left out
+    of the data term (holes); tangential: a displacement along the surface (the basis fit's vertex normals)
+    costs this many times the data term's curvature (the varifold cannot see a vertex slide along the surface,
+    and the energy barely: without it the layer moves vertices from their places); steps: of the straight path whose H2 energy regularises it; ftol,
+    plateau_window, plateau, memory: each level's preconditioned L-BFGS; tol: kernel truncation; ranges_margin: the truncated sums' ranges
+    are kept while no point moved more than this x the cutoff (``VarifoldLoss``); scan_cell: the scan summed over cells of this x sigma; flip_cos, collapse: a face whose normal turns past this cosine
     from the basis fit's, or whose area falls below this share of it, is bad; retries, stiffen: a fit with
     bad faces is fitted again with the energy this many times stiffer, so many times, then left out;
     fade_rings, fade_rounds: where the detail makes the surface cross itself it is faded out over this many
@@ -183,24 +187,27 @@ class DetailFit:
 
     enabled: bool = True
     kernel: str = "linear"
-    sigmas: tuple = (0.005,)
+    sigmas: tuple = (0.005, 0.004)
     weights: tuple = (1e8,)
+    subdivided: tuple = (False, True)
     spacing: float = 0.5
     reach: float = 1.5
+    tangential: float = 1.0
     steps: int = 1
-    max_iter: int = 25
+    max_iter: tuple = (20, 4)
     ftol: float = 1e-9
     plateau_window: int = 5
     plateau: float = 1e-3
     memory: int = 10
     tol: float = 1e-4
+    ranges_margin: float = 0.1
     scan_cell: float = 0.3
     flip_cos: float = 0.0
     collapse: float = 0.1
     retries: int = 2
     stiffen: float = 4.0
     fade_rings: int = 2
-    fade_rounds: int = 3
+    fade_rounds: int = 6
     poor_fits: bool = False
 
 

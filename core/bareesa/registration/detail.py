@@ -43,7 +43,7 @@ from .problem import orient_like
 @dataclass
 class Detail:
     """The detail layer of a registration: displacement (N, 3) in the template frame (None when left
-    out), one report per level {sigma, weight, stiffness, iterations, energy, varifold, seconds}, how many
+    out), one report per level {sigma, weight, stiffness, iterations, evaluations, energy, varifold, seconds}, how many
     times the energy was stiffened, how many vertices were faded out to keep the surface from crossing
     itself, why the layer was left out (None: kept), seconds."""
 
@@ -103,6 +103,35 @@ def data_stiffness(objective, x, stiff_matrix, stiffness, mass, probe=1e-4):
     return max(float(curvature), 0.0)
 
 
+def midpoint_subdivision(faces, n_verts):
+    """Each face split in four at its edges' midpoints: (F, 3), N -> edges (E, 2) (the new vertex N + e is the
+    midpoint of edge e), faces (4F, 3) and the face each comes from (4F,)."""
+    directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    edges, inverse = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True)
+    m01, m12, m20 = (n_verts + inverse.reshape(-1, 3)).T
+    a, b, c = faces.T
+    split = np.concatenate([np.stack(x, 1) for x in ((a, m01, m20), (m01, b, m12), (m20, m12, c), (m01, m12, m20))])
+    return edges, split, np.tile(np.arange(len(faces)), 4)
+
+
+def vertex_normals(verts, faces):
+    """Area-weighted unit vertex normals of a consistently wound mesh: (N, 3), (F, 3) -> (N, 3)."""
+    vectors = face_geometry(verts, faces)[0]
+    normals = np.zeros_like(np.asarray(verts, dtype=np.float64))
+    for k in range(3):
+        np.add.at(normals, faces[:, k], vectors)
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+
+
+def tangential_matrix(verts, faces):
+    """sum_v A_v |d_v - (d_v . n_v) n_v|^2 as d^T T d on vertex fields flattened vertex-major: (N, 3), (F, 3)
+    -> scipy.sparse csr (3N, 3N) (3 x 3 blocks A_v (I - n_v n_v^T))."""
+    normals = vertex_normals(verts, faces)
+    area = vertex_areas(torch.as_tensor(verts), torch.as_tensor(faces)).numpy()
+    blocks = area[:, None, None] * (np.eye(3)[None] - normals[:, :, None] * normals[:, None, :])
+    return scipy.sparse.block_diag(list(blocks), format="csr")
+
+
 def fade(displacement, faces, vertices, rings):
     """The displacement (N, 3) faded to 0 at ``vertices`` and over ``rings`` rings of edges around them
     (linearly in the ring): -> (N, 3)."""
@@ -120,10 +149,19 @@ def fade(displacement, faces, vertices, rings):
     return displacement * keep[:, None]
 
 
-def _crossing_vertices(verts, faces, before):
+def _crossing_vertices(verts, faces, before, near=None):
     """Vertices of the faces of ``verts`` that cross another face where they did not in ``before`` (a set
-    of face pairs) -> (K,) int."""
-    pairs = {tuple(p) for p in self_intersections(verts, faces).tolist()} - before
+    of face pairs); near (K,) vertex indices: only faces about those are tested (where the surface changed
+    since the last test; every face within a face's size of them) -> (K',) int."""
+    tested = np.arange(len(faces))
+    if near is not None and not len(near):
+        return np.zeros(0, dtype=np.int64)
+    if near is not None:
+        centres = face_geometry(verts, faces)[2]
+        reach = 2 * float(np.linalg.norm(verts[faces] - centres[:, None], axis=2).max())
+        close = cKDTree(verts[near]).query(centres, k=1, distance_upper_bound=reach)[0] <= reach
+        tested = np.flatnonzero(close)
+    pairs = {tuple(p) for p in tested[self_intersections(verts, faces[tested])].tolist()} - before
     return np.unique(faces[np.array(sorted(pairs), dtype=np.int64).reshape(-1, 2).ravel()])
 
 
@@ -142,44 +180,70 @@ def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, bac
     tw = None if target_weights is None else torch.as_tensor(np.asarray(target_weights, dtype=np.float64))
     floor = settings.spacing * scan_spacing(target, target_faces if target_weights is None
                                             else target_faces[np.asarray(target_weights) > 0])
-    sigmas = [max(s * scale, floor) for s in settings.sigmas]
-    sigmas = [s for k, s in enumerate(sigmas) if k == 0 or s < sigmas[k - 1] * 0.999]
-    reached = reached_faces(fit, faces, target, target_faces, target_weights, settings.reach * sigmas[0])
-    source_weights = torch.as_tensor(reached, dtype=torch.float64)
+    plan = []  # (sigma, weight, iterations, subdivided) per level; a level the floor makes a repeat is dropped
+    for k, s in enumerate(settings.sigmas):
+        level = (max(s * scale, floor), settings.weights[min(k, len(settings.weights) - 1)],
+                 settings.max_iter[min(k, len(settings.max_iter) - 1)],
+                 bool(settings.subdivided[min(k, len(settings.subdivided) - 1)]))
+        if not plan or level[0] < plan[-1][0] * 0.999 or level[3] != plan[-1][3]:
+            plan.append(level)
+    reached = reached_faces(fit, faces, target, target_faces, target_weights, settings.reach * plan[0][0])
+    # a subdivided level's data term sees each face as its four midpoint sub-faces: one point per face is
+    # too coarse a quadrature at a sigma under the template's edge length (it biases the fit by a fraction
+    # of a millimetre)
+    edges, fine_faces, parent = midpoint_subdivision(faces, len(fit))
+    edges, fine_faces = torch.as_tensor(edges), torch.as_tensor(fine_faces)
+    weights_of = {False: torch.as_tensor(reached, dtype=torch.float64),
+                  True: torch.as_tensor(reached[parent], dtype=torch.float64)}
     ramp = torch.linspace(0, 1, settings.steps + 1, dtype=torch.float64)[:, None, None]
     stiff_matrix = h2_metric.sparse_metric(q, f, metric)  # the energy's Hessian at d = 0 is 2 x this
     mass = scipy.sparse.kron(scipy.sparse.diags(vertex_areas(q, f).numpy()), scipy.sparse.identity(3), format="csr")
+    sliding = tangential_matrix(fit, faces)
+    normals = torch.as_tensor(vertex_normals(fit, faces))
+    areas = vertex_areas(q, f)
     lo, hi = progress
     stiffness, stiffened = 1.0, 0
     for attempt in range(settings.retries + 1):
         x, levels = np.zeros(q.numel()), []
-        for k, sigma in enumerate(sigmas):
+        for k, (sigma, weight, iterations, subdivided) in enumerate(plan):
             t1 = time.perf_counter()
             loss = VarifoldLoss(tv, tf, sigma, kernel=settings.kernel, backend=backend, target_weights=tw,
-                                cutoff=default_cutoff(sigma, settings.tol), target_cell=settings.scan_cell * sigma)
-            weight = settings.weights[min(k, len(settings.weights) - 1)]
-            terms = {}
+                                cutoff=default_cutoff(sigma, settings.tol), target_cell=settings.scan_cell * sigma,
+                                ranges_margin=settings.ranges_margin)
+            terms, slide, source_weights = {}, [0.0], weights_of[subdivided]
 
             def objective(xt):
                 d = xt.reshape(q.shape)
                 moved = q + d
                 energy = stiffness * h2_metric.path_energy(q + ramp * d, f, metric)
-                gamma = loss(moved, f, source_weights)
+                if subdivided:
+                    fine = torch.cat([moved, (moved[edges[:, 0]] + moved[edges[:, 1]]) / 2])
+                    gamma = loss(fine, fine_faces, source_weights)
+                else:
+                    gamma = loss(moved, f, source_weights)
                 data = gamma if landmarks is None else gamma + landmarks[0](moved, landmarks[1])
                 terms[xt.detach().numpy().tobytes()] = (float(energy.detach()), float(gamma.detach()))
-                return weight * data + energy
+                out = weight * data + energy
+                if slide[0]:  # d^T T d of ``tangential_matrix``
+                    along = d - (d * normals).sum(1, keepdim=True) * normals
+                    out = out + slide[0] * (areas * (along ** 2).sum(1)).sum()
+                return out
 
-            share = (lo + (hi - lo) * k / len(sigmas), lo + (hi - lo) * (k + 1) / len(sigmas))
-            solve = optimize.sparse_solver(2 * stiffness * stiff_matrix
-                                           + data_stiffness(objective, x, stiff_matrix, stiffness, mass) * mass)
-            x, _, nit = optimize.minimize_preconditioned(objective, x, solve, monitor, max_iter=settings.max_iter,
+            share = (lo + (hi - lo) * k / len(plan), lo + (hi - lo) * (k + 1) / len(plan))
+            if k == 0 or (sigma, weight) != plan[k - 1][:2]:  # (the same sigma and weight: the same curvature)
+                curvature = data_stiffness(objective, x, stiff_matrix, stiffness, mass)
+                solve = optimize.sparse_solver(2 * stiffness * stiff_matrix + curvature * mass
+                                               + 2 * settings.tangential * curvature * sliding)
+            slide[0] = settings.tangential * curvature  # sliding along the surface costs like a normal misfit
+            x, _, nit = optimize.minimize_preconditioned(objective, x, solve, monitor, max_iter=iterations,
                                                          progress=share, message=f"registration: detail "
                                                          f"(sigma {sigma:.3g})", ftol=settings.ftol,
                                                          plateau=(settings.plateau_window, settings.plateau),
                                                          memory=settings.memory)
             energy, gamma = terms.get(x.tobytes(), (float("nan"), float("nan")))
-            levels.append({"sigma": float(sigma), "weight": float(weight), "stiffness": float(stiffness),
-                           "iterations": int(nit), "energy": energy, "varifold": gamma,
+            levels.append({"sigma": float(sigma), "weight": float(weight), "subdivided": subdivided,
+                           "stiffness": float(stiffness),
+                           "iterations": int(nit), "evaluations": len(terms), "energy": energy, "varifold": gamma,
                            "seconds": time.perf_counter() - t1})
         d = x.reshape(q.shape)
         if not bad_faces(fit + d, faces, fit, settings.flip_cos, settings.collapse).any():
@@ -192,13 +256,16 @@ def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, bac
     # the kept layer adds no crossing of the surface and no bad face: faded out around them, wider each round
     before = {tuple(p) for p in self_intersections(fit, faces).tolist()}
     faded = np.zeros(len(fit), dtype=bool)
+    changed = None  # (after the first test, only about the vertices a fade changed)
     for rings in range(settings.fade_rings, settings.fade_rings + settings.fade_rounds + 1):
         broken = np.unique(faces[bad_faces(fit + d, faces, fit, settings.flip_cos, settings.collapse)])
-        broken = np.union1d(broken, _crossing_vertices(fit + d, faces, before))
+        broken = np.union1d(broken, _crossing_vertices(fit + d, faces, before, changed))
         if not len(broken):
             return Detail(d, levels, stiffened, int(faded.sum()), None, time.perf_counter() - t0)
         faded[broken] = True
+        faded_before = d
         d = fade(d, faces, np.flatnonzero(faded), rings)
+        changed = np.flatnonzero(np.any(d != faded_before, axis=1))
     return Detail(None, levels, stiffened, int(faded.sum()), "it made the surface cross itself",
                   time.perf_counter() - t0)
 

@@ -373,13 +373,15 @@ class KeptRanges:
     the ranges cost as much as a third of a finest-level evaluation.
     """
 
-    def __init__(self):
+    def __init__(self, margin=RANGES_MARGIN):
         self._kept = None
+        self.margin = margin
 
     def get(self, x, y, cutoff, grid=None):
         """(grid of y, ``Grid.ranges``' output) for the i points x (N, 3) and the j points y (M, 3):
-        ``grid`` is y's when y is fixed (kept by the caller), None when y moves (a grid is then kept here)."""
-        margin = RANGES_MARGIN * cutoff
+        ``grid`` is y's when y is fixed (kept by the caller), None when y moves (a grid is then kept here).
+        They reach ``margin`` x cutoff beyond it (RANGES_MARGIN unless the KeptRanges was given another)."""
+        margin = self.margin * cutoff
         if self._kept is not None:
             x0, y0, given, kept_cutoff, kept_grid, out = self._kept
             if (given is grid and kept_cutoff == cutoff and x0.shape == x.shape and _moved(x, x0) <= margin
@@ -387,7 +389,7 @@ class KeptRanges:
                 return kept_grid, out
         moving = grid is None
         kept_grid = Grid(y, cutoff) if moving else grid
-        out = kept_grid.ranges(x, ranges_reach(cutoff), CLUSTER_FRACTION * cutoff)
+        out = kept_grid.ranges(x, cutoff + 2 * margin, CLUSTER_FRACTION * cutoff)
         self._kept = (x.clone(), y.clone() if moving else None, grid, cutoff, kept_grid, out)
         return kept_grid, out
 

@@ -69,11 +69,12 @@ def varifold_inner(centers, normals, weights, other_centers, other_normals, othe
 class _FixedTarget:
     """What a squared distance to a fixed target measure caches: the target's grid and self term."""
 
-    def _start(self, measure, requires_grad):
+    def _start(self, measure, requires_grad, ranges_margin=None):
         self._measure, self.target_requires_grad = measure, requires_grad
         self._grid = None
         self._self = {}
-        self._kept = {"self": KeptRanges(), "cross": KeptRanges()}  # the moving source's terms' ranges
+        margin = () if ranges_margin is None else (ranges_margin,)
+        self._kept = {"self": KeptRanges(*margin), "cross": KeptRanges(*margin)}  # the moving source's terms' ranges
         self.stats = {}
 
     def _target_grid(self, engine):
@@ -124,11 +125,14 @@ class VarifoldLoss(_FixedTarget):
     many points as the target has faces (a scan much finer than sigma: otherwise the small
     saving is not worth the approximation and its dependence on the cell grid); the source
     stays exact. Not for a target that
-    requires grad. ``target_points`` is the number of target points used.
+    requires grad. ``target_points`` is the number of target points used. ``ranges_margin`` (a share of
+    the cutoff, default ``backends.RANGES_MARGIN``): how far the truncated backend's kept block-sparse
+    ranges reach beyond the cutoff, and so how far the source may move before they are found again (a
+    solve whose steps move points further, e.g. free vertex displacements, keeps them with a wider one).
     """
 
     def __init__(self, target_verts, target_faces, sigma, kernel="binet", backend="auto",
-                 target_weights=None, cutoff=None, target_cell=None):
+                 target_weights=None, cutoff=None, target_cell=None, ranges_margin=None):
         self.sigma = check_options(sigma, kernel, backend, cutoff)
         if target_cell is not None and not (float(target_cell) > 0 and math.isfinite(float(target_cell))):
             raise InputError(f"target_cell must be a positive finite length or None, got {target_cell}")
@@ -149,7 +153,7 @@ class VarifoldLoss(_FixedTarget):
             binned = binned_measure(*measure, float(target_cell), kernel)
             if binned[0].shape[0] <= TARGET_BIN_GAIN * measure[0].shape[0]:
                 measure = binned
-        self._start(measure, requires_grad)
+        self._start(measure, requires_grad, ranges_margin)
         self.target_points = measure[0].shape[0]
 
     @property

@@ -1,0 +1,126 @@
+"""The detail layer after the basis fit (``registration.detail``) and what it is built on."""
+
+import numpy as np
+import pytest
+import scipy.sparse
+import torch
+from scipy.spatial import cKDTree
+
+from bareesa import h2_metric, optimize, synthetic
+from bareesa.mesh import self_intersections
+from bareesa.registration import DetailFit, RegistrationResult, fit_detail, register
+from bareesa.registration.detail import bad_faces, fade, reached_faces
+
+#: settings of the detail layer at the scale of the unit-sphere test basis (the defaults are a human body's)
+SPHERE_DETAIL = {"sigmas": (0.05,), "weights": (1e3,)}
+BUMP_CENTRE = np.array([0.0, 0.6, 0.8])
+
+
+def _bump(u, height=0.06):
+    """A bump no field of the basis makes: radial, Gaussian about BUMP_CENTRE on the unit sphere."""
+    return height * np.exp(-((u - BUMP_CENTRE) ** 2).sum(1) / 0.15)[:, None] * u
+
+
+@pytest.fixture(scope="module")
+def bumped():
+    """The sphere basis, a code, F(code), a finer scan of F(code) with the bump and a dense copy of that surface."""
+    basis, surface = synthetic.smooth_sphere_basis(subdivisions=3, n_fields=6, seed=0)
+    alpha = 0.5 * np.random.default_rng(1).normal(size=6)
+    us, fs = synthetic.resampled_sphere(4, seed=3)
+    ud, _ = synthetic.icosphere(5)
+    return {"basis": basis, "surface": surface, "alpha": alpha, "fit": basis.template + np.tensordot(alpha, basis.fields, 1),
+            "scan": (surface(us, alpha) + _bump(us), fs), "dense": surface(ud, alpha) + _bump(ud)}
+
+
+def test_the_detail_layer_takes_the_bump_the_basis_cannot_make_without_breaking_a_face(bumped):
+    basis, fit, (scan, scan_faces) = bumped["basis"], bumped["fit"], bumped["scan"]
+    distance = cKDTree(bumped["dense"]).query
+    detail = fit_detail(fit, basis.faces, scan, scan_faces, DetailFit(**SPHERE_DETAIL), basis.shape_metric, basis.scale)
+    assert detail.skipped is None and detail.displacement.shape == fit.shape
+    detailed = fit + detail.displacement
+    assert distance(fit)[0].max() > 0.05  # the basis fit misses the bump's top ...
+    assert distance(detailed)[0].max() < 0.4 * distance(fit)[0].max()  # ... the detailed mesh takes it
+    assert not bad_faces(detailed, basis.faces, fit).any()
+    assert len(self_intersections(detailed, basis.faces)) == 0
+    report = detail.to_json()
+    assert report["kept"] and report["levels"][0]["iterations"] >= 1 and report["max"] > 0.02
+
+
+def test_faces_over_a_hole_are_left_to_the_energy_and_do_not_reach_into_it(bumped):
+    basis, fit, (scan, scan_faces) = bumped["basis"], bumped["fit"], bumped["scan"]
+    centre = fit[np.argmin(fit[:, 2])]  # the bottom, far from the bump
+    centres = scan[scan_faces].mean(1)
+    holed = scan_faces[np.linalg.norm(centres - centre, axis=1) > 0.35]
+    settings = DetailFit(**SPHERE_DETAIL)
+    sigma = settings.sigmas[0] * basis.scale
+    reached = reached_faces(fit, basis.faces, scan, holed, None, settings.reach * sigma)
+    inside = np.linalg.norm(fit[basis.faces].mean(1) - centre, axis=1) < 0.1
+    assert inside.any() and not reached[inside].any() and reached.mean() > 0.8
+    detail = fit_detail(fit, basis.faces, scan, holed, settings, basis.shape_metric, basis.scale)
+    moved = np.linalg.norm(detail.displacement, axis=1)
+    near = np.linalg.norm(fit - centre, axis=1) < 0.2
+    assert moved[near].max() < 0.1 * 0.35  # no spike into the hole (radius 0.35): carried by the energy
+
+
+def test_register_returns_the_detailed_mesh_beside_the_basis_fit_and_can_leave_it_out(bumped):
+    basis, surface = bumped["basis"], bumped["surface"]
+    scan, scan_faces = bumped["scan"]
+    rot = synthetic.random_rotation(4)
+    moved = 1.3 * scan @ rot.T + np.array([0.2, -0.1, 0.4])
+    res = register(basis, moved, scan_faces, detail=SPHERE_DETAIL)
+    assert res.detail is not None and res.detail.shape == basis.template.shape
+    fit = basis.template + np.tensordot(res.code, basis.fields, 1)
+    assert np.allclose(res.detailed_vertices, res.transform.invert(fit + res.detail), atol=1e-9)
+    assert res.output_vertices is res.detailed_vertices
+    report = res.to_json()["detail"]
+    assert report["kept"] and report["residual"] < res.residual and report["chamfer"] < res.chamfer
+    back = RegistrationResult.from_state(res.to_state())
+    assert np.array_equal(back.detail, res.detail) and back.detail_report == res.detail_report
+    plain = register(basis, moved, scan_faces, detail={"enabled": False})
+    assert plain.detail is None and plain.detailed_vertices is None and plain.output_vertices is plain.vertices
+    assert plain.detail_report["skipped"] == "turned off"
+
+
+def test_the_sparse_metric_is_the_h2_metric_on_vertex_fields():
+    basis, _ = synthetic.smooth_sphere_basis(subdivisions=2, n_fields=3, seed=0)
+    t, f, h = basis.tensors()
+    for weights in ("body", "face", (1.0, 2.0, -1.0, 0.5, 0.3, 0.7)):
+        matrix = h2_metric.sparse_metric(t, f, weights)
+        assert isinstance(matrix, scipy.sparse.csr_matrix) and matrix.shape == (3 * len(t),) * 2
+        field = torch.as_tensor(np.random.default_rng(0).normal(size=t.shape))
+        for v in (field, h[0], h[2]):
+            flat = v.reshape(-1).numpy()
+            assert flat @ (matrix @ flat) == pytest.approx(float(h2_metric.squared_norm(t, f, v, weights)), rel=1e-9)
+
+
+def test_preconditioned_lbfgs_solves_a_stiff_problem_in_few_iterations():
+    n = 400
+    lap = scipy.sparse.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1])
+    stiff = (1e4 * lap @ lap + scipy.sparse.identity(n)).tocsr()  # condition number ~ 1e9
+    rng = np.random.default_rng(0)
+    b = rng.normal(size=n)
+    quartic = 1e-3
+    a = torch.as_tensor(stiff.toarray())
+
+    def objective(x):  # stiff quadratic plus a small non-quadratic term
+        return 0.5 * x @ (a @ x) - torch.as_tensor(b) @ x + quartic * (x ** 4).sum()
+
+    x, value, iterations = optimize.minimize_preconditioned(objective, np.zeros(n), optimize.sparse_solver(stiff),
+                                                            max_iter=50, ftol=1e-14)
+    xt = torch.as_tensor(x).requires_grad_(True)
+    (grad,) = torch.autograd.grad(objective(xt), xt)
+    assert iterations < 30 and grad.norm() < 1e-6 * np.linalg.norm(b)
+    _, _, plain = optimize.minimize_lbfgs(objective, np.zeros(n), max_iter=30, ftol=1e-14, gtol=1e-12)
+    _, plain_value, _ = optimize.minimize_lbfgs(objective, np.zeros(n), max_iter=iterations, ftol=1e-14, gtol=1e-12)
+    assert value < plain_value  # unpreconditioned L-BFGS is further from the minimum after as many iterations
+
+
+def test_fade_zeroes_the_displacement_at_the_vertices_and_keeps_it_away_from_them():
+    verts, faces = synthetic.icosphere(2)
+    displacement = np.ones_like(verts)
+    out = fade(displacement, faces, np.array([0]), rings=2)
+    assert np.all(out[0] == 0)
+    ring = np.unique(faces[(faces == 0).any(1)])
+    assert np.all((out[ring[ring != 0]] > 0) & (out[ring[ring != 0]] < 1))
+    far = np.linalg.norm(verts - verts[0], axis=1) > 1.0
+    assert np.all(out[far] == 1)
