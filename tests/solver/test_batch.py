@@ -90,11 +90,16 @@ def test_batch_writes_every_output_equal_to_single_process_registration(tiny, sc
             record = json.loads((out / f"{scan.stem}.json").read_text())
             ref = registration.register(basis, *load_mesh(scan))
             np.testing.assert_allclose(record["code"], ref.code, rtol=1e-7, atol=1e-9)
-            np.testing.assert_allclose(load_mesh(out / record["mesh"])[0], ref.vertices, rtol=1e-7, atol=1e-9)
+            # the mesh is the registered one as `register` writes it: detailed when the detail layer was kept
+            np.testing.assert_allclose(load_mesh(out / record["mesh"])[0], ref.output_vertices, rtol=1e-7, atol=1e-9)
+            assert record["detail"]["kept"] == (ref.detail is not None)
+            if ref.detail is not None:
+                np.testing.assert_allclose(np.load(out / record["detail_layer"]), ref.detail, rtol=1e-7, atol=1e-9)
+                assert record["chamfer"] == pytest.approx(ref.detail_report["chamfer"], rel=1e-6)
             for key, value in ref.transform.to_dict().items():
                 np.testing.assert_allclose(record["transform"][key], value, rtol=1e-7, atol=1e-9)
             assert record["varifold"] == pytest.approx(ref.varifold, rel=1e-6)
-            assert record["chamfer"] == pytest.approx(ref.chamfer, rel=1e-6)
+            assert record["basis_fit_chamfer"] == pytest.approx(ref.chamfer, rel=1e-6)
             assert record["input_hash"] == batch.file_hash(scan)
             assert record["basis_hash"] == batch.file_hash(tiny[0])
             assert record["worker"].startswith("tcp://127.0.0.1")

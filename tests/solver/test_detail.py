@@ -9,7 +9,8 @@ from scipy.spatial import cKDTree
 from bareesa import h2_metric, optimize, synthetic
 from bareesa.mesh import self_intersections
 from bareesa.registration import DetailFit, RegistrationResult, fit_detail, register
-from bareesa.registration.detail import bad_faces, fade, reached_faces
+from bareesa.registration.detail import (_crossing_vertices, bad_faces, fade, reached_faces, tangential_matrix,
+                                        vertex_normals)
 
 #: settings of the detail layer at the scale of the unit-sphere test basis (the defaults are a human body's)
 SPHERE_DETAIL = {"sigmas": (0.05,), "weights": (1e3,)}
@@ -63,7 +64,7 @@ def test_faces_over_a_hole_are_left_to_the_energy_and_do_not_reach_into_it(bumpe
 
 
 def test_register_returns_the_detailed_mesh_beside_the_basis_fit_and_can_leave_it_out(bumped):
-    basis, surface = bumped["basis"], bumped["surface"]
+    basis = bumped["basis"]
     scan, scan_faces = bumped["scan"]
     rot = synthetic.random_rotation(4)
     moved = 1.3 * scan @ rot.T + np.array([0.2, -0.1, 0.4])
@@ -124,3 +125,33 @@ def test_fade_zeroes_the_displacement_at_the_vertices_and_keeps_it_away_from_the
     assert np.all((out[ring[ring != 0]] > 0) & (out[ring[ring != 0]] < 1))
     far = np.linalg.norm(verts - verts[0], axis=1) > 1.0
     assert np.all(out[far] == 1)
+
+
+def test_the_tangential_penalty_is_the_squared_displacement_along_the_surface():
+    verts, faces = synthetic.icosphere(2)
+    d = np.random.default_rng(0).normal(size=verts.shape)
+    normals = vertex_normals(verts, faces)
+    assert ((normals * verts / np.linalg.norm(verts, axis=1, keepdims=True)).sum(1) > 0.99).all()  # outward
+    along = d - (d * normals).sum(1, keepdims=True) * normals
+    areas = np.asarray(face_areas_per_vertex(verts, faces))
+    assert d.ravel() @ (tangential_matrix(verts, faces) @ d.ravel()) == pytest.approx((areas * (along ** 2).sum(1)).sum())
+    radial = 0.01 * normals  # a displacement along the normals costs nothing
+    assert radial.ravel() @ (tangential_matrix(verts, faces) @ radial.ravel()) == pytest.approx(0.0, abs=1e-12)
+
+
+def face_areas_per_vertex(verts, faces):
+    from bareesa.geometry import vertex_areas
+
+    return vertex_areas(torch.as_tensor(verts), torch.as_tensor(faces)).numpy()
+
+
+def test_a_layer_that_makes_the_surface_cross_itself_is_found_and_faded_out_there():
+    verts, faces = synthetic.icosphere(2)
+    d = np.zeros_like(verts)
+    top = int(np.argmax(verts[:, 2]))
+    d[top] = [0.0, 0.0, -2.3]  # the top vertex pushed out through the bottom of the sphere
+    crossing = _crossing_vertices(verts + d, faces, verts)
+    assert top in crossing and len(crossing) > 3
+    assert len(_crossing_vertices(verts + 0.05 * verts, faces, verts)) == 0  # inflated: nothing crosses
+    faded = fade(d, faces, crossing, rings=2)
+    assert len(_crossing_vertices(verts + faded, faces, verts)) == 0

@@ -11,6 +11,8 @@ import math
 import time
 from pathlib import Path
 
+import numpy as np
+
 from ..basis_io import resolve_basis_path
 from ..errors import InputError, SolveCancelled
 from ..progress import Monitor
@@ -160,11 +162,15 @@ def register_batch(basis, scans, output, *, workers=2, threads_per_worker=1, sch
             except Exception as err:  # noqa: BLE001 - a bug on one scan is recorded; the batch goes on
                 rec = {"status": "failed", "error": f"{type(err).__name__}: {err}".splitlines()[0],
                        "scan": str(scans[k]), "input_hash": input_hashes[k], "warm_start": warm[k]}
-            vertices = rec.pop("vertices", None)
+            vertices, layer = rec.pop("vertices", None), rec.pop("detail_layer", None)
             rec.update(version=RECORD_VERSION, name=names[k], index=k, basis=str(basis_path), basis_hash=basis_hash)
             if rec["status"] == "ok":
                 save_mesh_atomic(meshes[k], vertices, loaded.faces)
                 rec["mesh"] = meshes[k].name
+                if layer is not None:  # the detail layer (template frame) beside the detailed mesh
+                    layer_path = meshes[k].with_suffix(".detail.npy")
+                    np.save(layer_path, layer)
+                    rec["detail_layer"] = layer_path.name
             write_atomic(records[k], json.dumps(rec, indent=2))
             rows[k] = summary_row(k, names[k], rec)
             counts[rec["status"]] += 1

@@ -149,10 +149,10 @@ def fade(displacement, faces, vertices, rings):
     return displacement * keep[:, None]
 
 
-def _crossing_vertices(verts, faces, before, near=None):
-    """Vertices of the faces of ``verts`` that cross another face where they did not in ``before`` (a set
-    of face pairs); near (K,) vertex indices: only faces about those are tested (where the surface changed
-    since the last test; every face within a face's size of them) -> (K',) int."""
+def _crossing_vertices(verts, faces, reference, near=None):
+    """Vertices of the faces of ``verts`` that cross another face where those two faces of ``reference``
+    (N, 3) do not; near (K,) vertex indices: only faces about those are tested (where the surface changed
+    since the last test; every face within twice a face's size of them) -> (K',) int."""
     tested = np.arange(len(faces))
     if near is not None and not len(near):
         return np.zeros(0, dtype=np.int64)
@@ -161,8 +161,12 @@ def _crossing_vertices(verts, faces, before, near=None):
         reach = 2 * float(np.linalg.norm(verts[faces] - centres[:, None], axis=2).max())
         close = cKDTree(verts[near]).query(centres, k=1, distance_upper_bound=reach)[0] <= reach
         tested = np.flatnonzero(close)
-    pairs = {tuple(p) for p in tested[self_intersections(verts, faces[tested])].tolist()} - before
-    return np.unique(faces[np.array(sorted(pairs), dtype=np.int64).reshape(-1, 2).ravel()])
+    pairs = tested[self_intersections(verts, faces[tested])]
+    if len(pairs):  # those that crossed already (tested among the few faces involved)
+        involved = np.unique(pairs)
+        old = {tuple(p) for p in involved[self_intersections(reference, faces[involved])].tolist()}
+        pairs = np.array([p for p in pairs.tolist() if tuple(p) not in old], dtype=np.int64).reshape(-1, 2)
+    return np.unique(faces[pairs.ravel()])
 
 
 def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, backend="auto", target_weights=None, landmarks=None, monitor=None, progress=(0.0, 1.0)):
@@ -190,7 +194,7 @@ def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, bac
     reached = reached_faces(fit, faces, target, target_faces, target_weights, settings.reach * plan[0][0])
     # a subdivided level's data term sees each face as its four midpoint sub-faces: one point per face is
     # too coarse a quadrature at a sigma under the template's edge length (it biases the fit by a fraction
-    # of a millimetre)
+    # of a millimetre; three Strang-Fix points measured a little less close for a little less time)
     edges, fine_faces, parent = midpoint_subdivision(faces, len(fit))
     edges, fine_faces = torch.as_tensor(edges), torch.as_tensor(fine_faces)
     weights_of = {False: torch.as_tensor(reached, dtype=torch.float64),
@@ -230,7 +234,7 @@ def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, bac
                 return out
 
             share = (lo + (hi - lo) * k / len(plan), lo + (hi - lo) * (k + 1) / len(plan))
-            if k == 0 or (sigma, weight) != plan[k - 1][:2]:  # (the same sigma and weight: the same curvature)
+            if k == 0 or weight != plan[k - 1][1]:  # (a finer level keeps the preconditioner: L-BFGS rescales it)
                 curvature = data_stiffness(objective, x, stiff_matrix, stiffness, mass)
                 solve = optimize.sparse_solver(2 * stiffness * stiff_matrix + curvature * mass
                                                + 2 * settings.tangential * curvature * sliding)
@@ -254,12 +258,11 @@ def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, bac
         return Detail(None, levels, stiffened, 0, "it flipped or collapsed faces of the basis fit",
                       time.perf_counter() - t0)
     # the kept layer adds no crossing of the surface and no bad face: faded out around them, wider each round
-    before = {tuple(p) for p in self_intersections(fit, faces).tolist()}
     faded = np.zeros(len(fit), dtype=bool)
     changed = None  # (after the first test, only about the vertices a fade changed)
     for rings in range(settings.fade_rings, settings.fade_rings + settings.fade_rounds + 1):
         broken = np.unique(faces[bad_faces(fit + d, faces, fit, settings.flip_cos, settings.collapse)])
-        broken = np.union1d(broken, _crossing_vertices(fit + d, faces, before, changed))
+        broken = np.union1d(broken, _crossing_vertices(fit + d, faces, fit, changed))
         if not len(broken):
             return Detail(d, levels, stiffened, int(faded.sum()), None, time.perf_counter() - t0)
         faded[broken] = True
