@@ -2,26 +2,29 @@ r"""``fit_detail``: the scan's own detail on the registered template, after the 
 
 A basis fit q = F(alpha) reproduces the body the basis can make. The detail step adds free per-vertex
 displacements d (N, 3) of the registered template (template frame), the paper's unrestricted H2 matching
-started from the basis fit: coarse to fine over ``DetailFit.sigmas``,
+started from the basis fit, over the levels of ``DetailFit`` (sigmas, weights, iterations):
 
-    minimise_d   weight * [ Gamma_sigma(q + d, scan) + landmark term ]  +  E(q -> q + d),
+    minimise_d   weight * [ Gamma_sigma(q + d, scan) + landmark term ]  +  E(q -> q + d)  +  slide * |d_t|^2,
 
 Gamma the squared varifold distance (kernel ``DetailFit.kernel``, the scan's pieces turned to face like
-the basis fit when it is oriented; the registration's backend and scan face weights) and E the
-H2 energy (the basis' shape metric) of the deformation q -> q + d as a path of ``steps`` straight steps.
-Template faces farther than ``reach`` x the first sigma from the scan (over a hole, a cropped or masked
-part) are left out of the data term: the energy alone carries them along with their neighbours, so they
-do not reach into the hole. The finest sigma is no finer than ``spacing`` x the scan's sampling.
+the basis fit when it is oriented; the registration's backend and scan face weights), E the H2 energy
+(the basis' shape metric) of the deformation q -> q + d as a path of ``steps`` straight steps, and
+|d_t|^2 the area-weighted squared part of d along the surface (``tangential_matrix``): the varifold cannot
+see a vertex slide along the surface, and without it vertices leave their places. The last level's data
+term sees each face as its four midpoint sub-faces (a finer quadrature than one point per face, which
+biases the fit at a sigma under the template's edge length). Template faces farther than ``reach`` x the
+first sigma from the scan (over a hole, a cropped or masked part) are left out of the data term: the energy
+carries them along with their neighbours. No sigma is finer than ``spacing`` x the scan's sampling.
 
-The solve is L-BFGS preconditioned by the energy's Hessian at d = 0 (``h2_metric.sparse_metric``) plus the
-data term's curvature (``data_stiffness``): plain L-BFGS needs hundreds of iterations on N x 3 free
-variables under a second-order energy, this a few tens.
+The solve is L-BFGS preconditioned by the energy's Hessian at d = 0 (``h2_metric.sparse_metric``), the data
+term's curvature (``data_stiffness``) and the sliding penalty (``optimize.minimize_preconditioned``): plain
+L-BFGS needs hundreds of iterations on N x 3 free variables under a second-order energy, this a few tens.
 
 A detail layer never adds broken faces: a fit that flips or collapses faces of the basis fit
 (``bad_faces``) is fitted again with a stiffer energy (``stiffen`` times the last), and left out (d = 0)
-when it still does; where it makes the surface cross itself where the basis fit did not, the detail is
-faded out around those faces (``fade``). The result is a ``Detail``, in the template frame: F(alpha) + d
-is the detailed mesh.
+when it still does; where it flips a face or makes the surface cross itself where the basis fit did not,
+the detail is faded out around those faces (``fade``), wider each round. The result is a ``Detail``, in the
+template frame: F(alpha) + d is the detailed mesh. Why each choice: docs/decisions/022-detail-layer.md.
 """
 
 import math
@@ -43,9 +46,9 @@ from .problem import orient_like
 @dataclass
 class Detail:
     """The detail layer of a registration: displacement (N, 3) in the template frame (None when left
-    out), one report per level {sigma, weight, stiffness, iterations, evaluations, energy, varifold, seconds}, how many
-    times the energy was stiffened, how many vertices were faded out to keep the surface from crossing
-    itself, why the layer was left out (None: kept), seconds."""
+    out), one report per level {sigma, weight, subdivided, stiffness, iterations, evaluations, energy,
+    varifold, seconds}, how many times the energy was stiffened, how many vertices were faded out to keep
+    the surface whole, why the layer was left out (None: kept), seconds."""
 
     displacement: np.ndarray | None
     levels: list
@@ -169,19 +172,22 @@ def _crossing_vertices(verts, faces, reference, near=None):
     return np.unique(faces[pairs.ravel()])
 
 
-def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, backend="auto", target_weights=None, landmarks=None, monitor=None, progress=(0.0, 1.0)):
+def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, backend="auto", device="cpu",
+               target_weights=None, landmarks=None, monitor=None, progress=(0.0, 1.0)):
     """Detail displacements of a basis fit: fit (N, 3) F(alpha) and target (M, 3) the scan in the template
     frame, faces (F, 3), target_faces (G, 3), settings a ``DetailFit``, metric the H2 weights, scale the
-    basis' (sigmas are relative to it); target_weights (G,) numpy or None; landmarks (pull, points) as
+    basis' (sigmas are relative to it); backend and device (torch) of the objective, float64 (the
+    preconditioned solve runs on the CPU); target_weights (G,) numpy or None; landmarks (pull, points) as
     ``RegistrationProblem`` holds them, or None; monitor a ``progress.Monitor`` (cancellable) -> Detail."""
     t0 = time.perf_counter()
     fit, faces = np.asarray(fit, dtype=np.float64), np.asarray(faces, dtype=np.int64)
     target, target_faces = np.asarray(target, dtype=np.float64), np.asarray(target_faces, dtype=np.int64)
     if is_oriented(settings.kernel):  # the scan's pieces turned to face like the basis fit
         target_faces = orient_like(target, target_faces, fit, faces, target_weights)[0]
-    q, f = torch.as_tensor(fit), torch.as_tensor(faces)
-    tv, tf = torch.as_tensor(target), torch.as_tensor(target_faces)
-    tw = None if target_weights is None else torch.as_tensor(np.asarray(target_weights, dtype=np.float64))
+    on = {"dtype": torch.float64, "device": device}
+    q, f = torch.as_tensor(fit, **on), torch.as_tensor(faces, device=device)
+    tv, tf = torch.as_tensor(target, **on), torch.as_tensor(target_faces, device=device)
+    tw = None if target_weights is None else torch.as_tensor(np.asarray(target_weights, dtype=np.float64), **on)
     floor = settings.spacing * scan_spacing(target, target_faces if target_weights is None
                                             else target_faces[np.asarray(target_weights) > 0])
     plan = []  # (sigma, weight, iterations, subdivided) per level; a level the floor makes a repeat is dropped
@@ -196,15 +202,14 @@ def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, bac
     # too coarse a quadrature at a sigma under the template's edge length (it biases the fit by a fraction
     # of a millimetre; three Strang-Fix points measured a little less close for a little less time)
     edges, fine_faces, parent = midpoint_subdivision(faces, len(fit))
-    edges, fine_faces = torch.as_tensor(edges), torch.as_tensor(fine_faces)
-    weights_of = {False: torch.as_tensor(reached, dtype=torch.float64),
-                  True: torch.as_tensor(reached[parent], dtype=torch.float64)}
-    ramp = torch.linspace(0, 1, settings.steps + 1, dtype=torch.float64)[:, None, None]
-    stiff_matrix = h2_metric.sparse_metric(q, f, metric)  # the energy's Hessian at d = 0 is 2 x this
-    mass = scipy.sparse.kron(scipy.sparse.diags(vertex_areas(q, f).numpy()), scipy.sparse.identity(3), format="csr")
-    sliding = tangential_matrix(fit, faces)
-    normals = torch.as_tensor(vertex_normals(fit, faces))
+    edges, fine_faces = torch.as_tensor(edges, device=device), torch.as_tensor(fine_faces, device=device)
+    weights_of = {False: torch.as_tensor(reached, **on), True: torch.as_tensor(reached[parent], **on)}
+    ramp = torch.linspace(0, 1, settings.steps + 1, **on)[:, None, None]
+    stiff_matrix = h2_metric.sparse_metric(q.cpu(), f.cpu(), metric)  # the energy's Hessian at d = 0 is 2 x this
     areas = vertex_areas(q, f)
+    mass = scipy.sparse.kron(scipy.sparse.diags(areas.cpu().numpy()), scipy.sparse.identity(3), format="csr")
+    sliding = tangential_matrix(fit, faces)
+    normals = torch.as_tensor(vertex_normals(fit, faces), **on)
     lo, hi = progress
     stiffness, stiffened = 1.0, 0
     for attempt in range(settings.retries + 1):
@@ -217,7 +222,7 @@ def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, bac
             terms, slide, source_weights = {}, [0.0], weights_of[subdivided]
 
             def objective(xt):
-                d = xt.reshape(q.shape)
+                d = xt.to(device).reshape(q.shape)
                 moved = q + d
                 energy = stiffness * h2_metric.path_energy(q + ramp * d, f, metric)
                 if subdivided:
@@ -226,7 +231,7 @@ def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, bac
                 else:
                     gamma = loss(moved, f, source_weights)
                 data = gamma if landmarks is None else gamma + landmarks[0](moved, landmarks[1])
-                terms[xt.detach().numpy().tobytes()] = (float(energy.detach()), float(gamma.detach()))
+                terms[xt.detach().cpu().numpy().tobytes()] = (float(energy.detach()), float(gamma.detach()))
                 out = weight * data + energy
                 if slide[0]:  # d^T T d of ``tangential_matrix``
                     along = d - (d * normals).sum(1, keepdim=True) * normals
@@ -280,5 +285,5 @@ def detail_of(basis, code, transform, scan_verts, scan_faces, config, scan_face_
     (G,) or None; landmarks (pull, points in the template frame) or None -> Detail."""
     return fit_detail(basis.template + np.tensordot(code, basis.fields, axes=1), basis.faces,
                       transform.apply(np.asarray(scan_verts, dtype=np.float64)), scan_faces, config.detail,
-                      config.shape_metric(basis), basis.scale, backend=config.backend,
+                      config.shape_metric(basis), basis.scale, backend=config.backend, device=config.device,
                       target_weights=scan_face_weights, landmarks=landmarks, monitor=monitor, progress=progress)

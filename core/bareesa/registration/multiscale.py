@@ -208,7 +208,7 @@ def _detail(config, basis, problem, fit, monitor):
     monitor.report(DETAIL_SHARE, "registration: detail")
     marks = None
     if problem.marks is not None:
-        marks = (problem.pull, problem.landmark_points(fit.transform).detach().cpu().double())
+        marks = (problem.pull, problem.landmark_points(fit.transform).detach().double())
     return detail_of(basis, fit.path[-1], fit.transform, problem.scan, problem.scan_faces_np, config,
                      problem.scan_weights_np, marks, monitor, (DETAIL_SHARE, 1.0))
 
