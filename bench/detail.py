@@ -156,42 +156,46 @@ def summary(rows):
     return figures
 
 
-def figure(path, shown):
-    """Scan, basis fit and detailed fit of the real body, coloured by distance to the scan (mm)."""
+def figure(path, shown, top=5.0):
+    """Scan, basis fit and detailed fit of the real body, the fits' faces coloured by their distance to the
+    scan's surface (mm, 0 to ``top``)."""
+    import bpy  # noqa: F401  (puts bpy's mathutils on the path)
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from mathutils.bvhtree import BVHTree
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
-    from scipy.spatial import cKDTree
+
+    from bareesa.basis_io import load_basis
 
     scan, scan_faces, res = shown
     frame = res.transform  # shown upright, in the template frame
-    tree = cKDTree(frame.apply(scan))
-    from bareesa.basis_io import load_basis
-
+    upright = frame.apply(scan)
+    tree = BVHTree.FromPolygons(upright.tolist(), np.asarray(scan_faces).tolist())
     faces = load_basis("human").faces
-    panels = [("scan", frame.apply(scan), scan_faces)]
-    panels += [(title, frame.apply(verts), faces) for title, verts in (("basis fit", res.vertices),
-                                                                        ("detailed fit", res.output_vertices))]
-    fig = plt.figure(figsize=(12, 6))
-    for k, (title, v, f) in enumerate(panels):
+    panels = [("scan", upright, scan_faces, None)]
+    for title, verts in (("basis fit", res.vertices), ("detailed fit", res.output_vertices)):
+        v = frame.apply(verts)
+        dist = 1e3 * np.array([tree.find_nearest(p)[3] for p in v[faces].mean(1)]) / frame.scale
+        panels.append((title, v, faces, dist))
+    fig = plt.figure(figsize=(11, 7))
+    lo, hi = upright.min(0), upright.max(0)
+    centre, half = (lo + hi) / 2, (hi - lo).max() / 2
+    for k, (title, v, f, dist) in enumerate(panels):
         ax = fig.add_subplot(1, 3, k + 1, projection="3d")
-        tri = v[f]
-        if k == 0:
-            colours = "lightgray"
-        else:
-            d = 1e3 * tree.query(tri.mean(1))[0]
-            colours = plt.cm.viridis(np.clip(d / 10.0, 0, 1))
-        ax.add_collection3d(Poly3DCollection(tri, facecolors=colours, edgecolor="none"))
-        lo, hi = v.min(0), v.max(0)
-        c, r = (lo + hi) / 2, (hi - lo).max() / 2
-        ax.set(xlim=(c[0] - r, c[0] + r), ylim=(c[1] - r, c[1] + r), zlim=(c[2] - r, c[2] + r))
-        ax.view_init(elev=10, azim=-90)
+        colours = "lightgray" if dist is None else plt.cm.viridis(np.clip(dist / top, 0, 1))
+        ax.add_collection3d(Poly3DCollection(v[f], facecolors=colours, edgecolor="none"))
+        ax.set(xlim=(centre[0] - half, centre[0] + half), ylim=(centre[1] - half, centre[1] + half),
+               zlim=(centre[2] - half, centre[2] + half))
+        ax.set_box_aspect((1, 1, 1), zoom=1.5)
+        ax.view_init(elev=5, azim=-90)
         ax.set_axis_off()
-        ax.set_title(title + ("" if k == 0 else " (colour: distance to the scan, 0-10 mm)"), fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
+        ax.set_title(title, fontsize=10)
+    bar = fig.colorbar(plt.cm.ScalarMappable(norm=plt.Normalize(0, top), cmap="viridis"), ax=fig.axes,
+                       orientation="horizontal", fraction=0.04, pad=0.02)
+    bar.set_label(f"distance to the scan's surface (mm; {top:g} and more alike)")
+    fig.savefig(path, dpi=90, bbox_inches="tight")
     print(f"figure written to {path}")
 
 
@@ -247,16 +251,16 @@ TARGETS = {"real_detail_mean_mm": {"target": 1.0, "better": "lower"},
            "crossings_added_max": {"target": 0, "better": "lower"},
            "hole_spike_max_pct_height": {"target": 1.0, "better": "lower"},
            "detail_over_basis_max_pct": {"target": 50.0, "better": "lower"}}
-LABELS = {"real_detail_mean_mm": "real body (DFAUST): detailed fit, mean distance each way, worst (mm)",
-          "real_detail_hausdorff_mm": "real body: detailed fit, Hausdorff (mm)",
-          "real_basis_mean_mm": "real body: basis fit, mean distance each way, worst (mm)",
-          "clean_detail_mean_mm": "clean held-out people: detailed fit, mean distance each way, worst (mm)",
-          "clean_detail_hausdorff_mm": "clean held-out people: detailed fit, Hausdorff (mm)",
-          "noisy_closer_to_truth_pct": "noisy scans (2 mm): detailed fit closer to the true surface than the basis fit (%)",
+LABELS = {"real_detail_mean_mm": "real body (DFAUST): detailed fit, mean distance each way, worst",
+          "real_detail_hausdorff_mm": "real body: detailed fit, Hausdorff",
+          "real_basis_mean_mm": "real body: basis fit, mean distance each way, worst",
+          "clean_detail_mean_mm": "clean held-out people: detailed fit, mean distance each way, worst",
+          "clean_detail_hausdorff_mm": "clean held-out people: detailed fit, Hausdorff",
+          "noisy_closer_to_truth_pct": "noisy scans (2 mm): detailed fits closer to the true surface than the basis fit",
           "bad_faces": "flipped or collapsed faces added by the detail layer",
           "crossings_added_max": "surface self-intersections added by the detail layer (worst scan)",
-          "hole_spike_max_pct_height": "largest spike into a hole (% of height)",
-          "detail_over_basis_max_pct": "detail layer's time over the basis fit's, worst (%)"}
+          "hole_spike_max_pct_height": "largest spike into a hole",
+          "detail_over_basis_max_pct": "detail layer's time over the basis fit's, worst"}
 
 
 if __name__ == "__main__":

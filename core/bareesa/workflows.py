@@ -297,11 +297,11 @@ def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=
                                             options.metric(basis), n_new, callback=monitor.scaled(lo, 1.0),
                                             cancel=cancel, anchor=anchor, with_report=True)
     except shooting.ShootingFailed as err:
-        first = first_creased(basis, err.frames)
+        first = first_creased(basis, err.frames, [end.code for end in ends])
         if first is None:
             raise
-        raise shooting.ShootingFailed(f"{err}; frame {first} already creases a joint flat: the motion has left "
-                                      "the bodies the basis can make", frames=err.frames) from None
+        raise shooting.ShootingFailed(f"{err}; frame {first} already creases a joint flat that the inputs did not: "
+                                      "the motion has left the bodies the basis can make", frames=err.frames) from None
     return Continuation(ends=ends, path=path, detail=_detail_along(ends, np.arange(len(path)), keep_detail),
                         shooting=report)
 
@@ -366,21 +366,36 @@ DRAWS_PER_BODY = 10
 CREASE_QUALITY = 0.1
 
 
-def creased(template, faces, verts, floor=CREASE_QUALITY):
+def creased(template, faces, verts, floor=CREASE_QUALITY, reference=None):
     """Whether a body (N, 3) in the template's topology has a triangle under ``floor`` of its quality on the
-    template (N, 3), faces (F, 3) (a joint creased flat, where limbs run through each other)."""
-    reference = triangle_quality(template, faces)
+    template (N, 3), faces (F, 3) (a joint creased flat, where limbs run through each other); reference
+    (F,): the qualities to judge against instead of the template's (e.g. ``input_quality`` of a motion's
+    frames: did the motion crease a triangle its inputs did not?)."""
+    reference = triangle_quality(template, faces) if reference is None else np.asarray(reference, dtype=np.float64)
     ratio = np.divide(triangle_quality(verts, faces), reference, out=np.ones_like(reference), where=reference > 0)
     return bool(ratio.min() < floor)
 
 
-def first_creased(basis, codes):
+def input_quality(basis, codes):
+    """Each triangle's quality in the worst of the bodies of codes (K, P), and never above the template's:
+    what a motion through them is judged against -> (F,)."""
+    quality = triangle_quality(basis.template, basis.faces)
+    for code in np.atleast_2d(codes):
+        quality = np.minimum(quality, triangle_quality(basis.template + np.tensordot(code, basis.fields, axes=1),
+                                                       basis.faces))
+    return quality
+
+
+def first_creased(basis, codes, inputs=None):
     """The number (1-based) of the first of codes (K, P) whose body is ``creased``, or None (also for
-    codes None)."""
+    codes None); inputs (J, P): the motion's input codes, judged against (a registered person's triangles
+    may be thinner than the template's already: only what the motion creased counts), else the template."""
     if codes is None:
         return None
+    reference = None if inputs is None else input_quality(basis, inputs)
     for k, code in enumerate(codes):
-        if creased(basis.template, basis.faces, basis.template + np.tensordot(code, basis.fields, axes=1)):
+        if creased(basis.template, basis.faces, basis.template + np.tensordot(code, basis.fields, axes=1),
+                   reference=reference):
             return k + 1
     return None
 

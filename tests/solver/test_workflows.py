@@ -12,7 +12,7 @@ from bareesa import cli, geodesics, registration, shooting, synthetic, workflows
 from bareesa.basis_io import save_basis
 from bareesa.errors import InputError
 from bareesa.h2_metric import PRESETS
-from bareesa.mesh import save_mesh
+from bareesa.mesh import save_mesh, triangle_quality
 from bareesa.transforms import Similarity
 from tests.solver.support import A, B
 
@@ -36,7 +36,8 @@ def test_symmetric_matching_of_two_scans_solves_with_the_given_metric_steps_and_
 
     monkeypatch.setattr(registration, "symmetric_match", fake)
     schedule = basis.schedule[:1]
-    options = workflows.Options(weights="body", schedule=schedule, steps=5, device="meta", kernel="linear")
+    options = workflows.Options(weights="body", schedule=schedule, steps=5, device="meta", kernel="linear",
+                                registration={"detail.enabled": False})  # (no detail layer on the meta device)
     found = workflows.path_between(basis, raw_scan(surface, A, 4), raw_scan(surface, B, 6), 4,
                                    workflows.Options(weights="body", schedule=schedule, steps=5))
     assert seen == {"weights": PRESETS["body"], "steps": 5, "schedule": schedule, "device": "cpu", "kernel": "auto",
@@ -53,6 +54,8 @@ def test_symmetric_matching_of_two_scans_solves_with_the_given_metric_steps_and_
     for end, code in zip(found.ends, (A, B)):
         reg = end.registration
         assert isinstance(reg, workflows.MatchedEnd) and np.allclose(reg.code, code)
+        # each end's detail layer is fitted after the matching (kept, or why not) and is the end's detail
+        assert reg.detail is not None and (end.detail is None) == (reg.detail.displacement is None)
         assert np.allclose(reg.vertices, basis.template + np.tensordot(code, basis.fields, 1))
         assert reg.chamfer > 0 and reg.varifold == 0.0
 
@@ -256,3 +259,17 @@ def test_a_random_body_whose_faces_cross_is_replaced_and_counted(sphere, monkeyp
     bodies = workflows.random_bodies(basis, 3, 2, shoot_steps=2)
     assert np.array_equal(bodies_seen[0], basis.template)
     assert bodies.replaced == 1 and np.allclose(bodies.codes[:2], plain.codes[1:])
+
+
+def test_a_crease_is_judged_against_the_motions_inputs_not_the_template(sphere):
+    basis, _ = sphere
+    thin = np.zeros(basis.n_fields)
+    thin[0] = 16.0  # a body whose triangles are already far thinner than the template's
+    assert workflows.first_creased(basis, [thin]) == 1  # against the template: creased
+    assert workflows.first_creased(basis, [thin], inputs=[thin, 0.9 * thin]) is None  # the inputs are so already
+    reference = workflows.input_quality(basis, [thin, np.zeros(basis.n_fields)])
+    assert np.all(reference <= triangle_quality(basis.template, basis.faces) + 1e-12)
+    squashed = basis.template.copy()
+    tri = basis.faces[0]
+    squashed[tri[2]] = squashed[tri[:2]].mean(0)  # one triangle flattened to a segment: creased whatever the inputs
+    assert workflows.creased(basis.template, basis.faces, squashed, reference=reference)
