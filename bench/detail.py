@@ -217,15 +217,9 @@ def main(argv=None):
     basis = load_basis(args.basis)
     rows, shown = real_rows(basis, args.real)
     if args.people:
-        if args.truths is not None and args.truths.exists():
-            stored = np.load(args.truths)
-            truths = {k: stored[k] for k in stored.files if k != "faces"}
-        else:
-            from bench.pose_coverage import SEED, held_out_truths
+        from bench.pose_coverage import cached_truths
 
-            faces, truths = held_out_truths(args.people, args.people, SEED, log=lambda *_: None)
-            if args.truths is not None:
-                np.savez_compressed(args.truths, faces=faces, **truths)
+        truths = cached_truths(args.truths, basis, args.people, args.people)
         names = ([n for n in truths if n.startswith("apose")][:(args.people + 1) // 2]
                  + [n for n in truths if n.startswith("random")][:args.people // 2])
         rows += people_rows(basis, truths, names, args.noise)

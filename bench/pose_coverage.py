@@ -60,6 +60,21 @@ def held_out_truths(n_random, n_apose, seed, log=print):
     return gen.faces, out
 
 
+def cached_truths(path, basis, n_random, n_apose, seed=SEED):
+    """``held_out_truths``' bodies {name: (N, 3)}, read from the cache ``path`` when it exists (else made, and
+    written there unless path is None); exits when their topology is not the basis'."""
+    if path is not None and path.exists():
+        stored = np.load(path)
+        faces, truths = stored["faces"], {k: stored[k] for k in stored.files if k != "faces"}
+    else:
+        faces, truths = held_out_truths(n_random, n_apose, seed, log=lambda *_: None)
+        if path is not None:
+            np.savez_compressed(path, faces=faces, **truths)
+    if not np.array_equal(faces, basis.faces):
+        sys.exit("the generator's topology differs from the basis: rebuild with python -m bases.build human")
+    return truths
+
+
 def registration_row(basis, name, true, seed, keep=None):
     """Register a simulated scan of ``true`` (N, 3): -> row dict (``keep``: a dict that gets the scan and the
     fit, both in the true body's frame, under ``name``)."""
@@ -141,15 +156,7 @@ def main(argv=None):
     from bareesa.basis_io import load_basis
 
     basis = load_basis(args.basis)
-    if args.truths is not None and args.truths.exists():
-        stored = np.load(args.truths)
-        faces, truths = stored["faces"], {k: stored[k] for k in stored.files if k != "faces"}
-    else:
-        faces, truths = held_out_truths(args.random, args.apose, args.seed, log=lambda *_: None)
-        if args.truths is not None:
-            np.savez_compressed(args.truths, faces=faces, **truths)
-    if not np.array_equal(faces, basis.faces):
-        sys.exit("the generator's topology differs from the basis: rebuild with python -m bases.build human")
+    truths = cached_truths(args.truths, basis, args.random, args.apose, args.seed)
     extreme = [n for n in truths if not n.startswith(("random", "apose"))][:args.extreme]
     order = ([n for n in truths if n.startswith("apose")][:args.apose] + [n for n in truths if n.startswith("random")]
              [:args.random] + extreme)

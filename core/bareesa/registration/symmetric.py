@@ -81,9 +81,10 @@ def symmetric_match(basis, scan0, scan1, steps=10, config=None, *, weights=None,
     for scan, w, marks in zip((scan0, scan1), face_weights, landmarks):  # both checked before any solve
         check_face_weights(w, len(scan[1]))
         check_landmarks(marks, basis.template.shape[0])
-    r0 = register(basis, *scan0, config, scan_face_weights=face_weights[0], landmarks=landmarks[0],
+    starts = config.with_overrides({"detail.enabled": False})  # the joint solve moves the ends: no detail yet
+    r0 = register(basis, *scan0, starts, scan_face_weights=face_weights[0], landmarks=landmarks[0],
                   callback=monitor.scaled(0.0, 0.4), cancel=cancel)
-    r1 = register(basis, *scan1, config, scan_face_weights=face_weights[1], landmarks=landmarks[1],
+    r1 = register(basis, *scan1, starts, scan_face_weights=face_weights[1], landmarks=landmarks[1],
                   callback=monitor.scaled(0.4, 0.8), cancel=cancel)
     path, energy, gammas = match_registered(basis, (scan0, scan1), (r0, r1), steps, config.schedule[-1], weights,
                                             monitor, config, face_weights, landmarks)
