@@ -179,7 +179,7 @@ class DetailFit:
     plateau_window, plateau, memory: each level's preconditioned L-BFGS; tol: kernel truncation; ranges_margin: the truncated sums' ranges
     are kept while no point moved more than this x the cutoff (``VarifoldLoss``); scan_cell: the scan summed over cells of this x sigma; flip_cos, collapse: a face whose normal turns past this cosine
     from the basis fit's, or whose area falls below this share of it, is bad; retries, stiffen: a fit with
-    bad faces is fitted again with the energy this many times stiffer, so many times, then left out;
+    bad faces is fitted again with the energy this many times stiffer, so many times (then faded as below);
     fade_rings, fade_rounds: where the detail makes the surface cross itself it is faded out over this many
     rings around the crossing faces, one ring more each round, so many rounds, then left out; poor_fits:
     also fit it on a registration flagged poor.

@@ -21,9 +21,9 @@ term's curvature (``data_stiffness``) and the sliding penalty (``optimize.minimi
 L-BFGS needs hundreds of iterations on N x 3 free variables under a second-order energy, this a few tens.
 
 A detail layer never adds broken faces: a fit that flips or collapses faces of the basis fit
-(``bad_faces``) is fitted again with a stiffer energy (``stiffen`` times the last), and left out (d = 0)
-when it still does; where it flips a face or makes the surface cross itself where the basis fit did not,
-the detail is faded out around those faces (``fade``), wider each round. The result is a ``Detail``, in the
+(``bad_faces``) is fitted again with a stiffer energy (``stiffen`` times the last, ``retries`` times); where
+the last fit still flips a face or makes the surface cross itself where the basis fit did not, the detail is
+faded out around those faces (``fade``), wider each round, and left out (d = 0) when that does not end it. The result is a ``Detail``, in the
 template frame: F(alpha) + d is the detailed mesh. Why each choice: docs/decisions/022-detail-layer.md.
 """
 
@@ -255,14 +255,12 @@ def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, bac
                            "iterations": int(nit), "evaluations": len(terms), "energy": energy, "varifold": gamma,
                            "seconds": time.perf_counter() - t1})
         d = x.reshape(q.shape)
-        if not bad_faces(fit + d, faces, fit, settings.flip_cos, settings.collapse).any():
+        if attempt == settings.retries or not bad_faces(fit + d, faces, fit, settings.flip_cos, settings.collapse).any():
             break
         stiffness *= settings.stiffen
         stiffened += 1
-    else:
-        return Detail(None, levels, stiffened, 0, "it flipped or collapsed faces of the basis fit",
-                      time.perf_counter() - t0)
-    # the kept layer adds no crossing of the surface and no bad face: faded out around them, wider each round
+    # the kept layer adds no crossing of the surface and no bad face (those the stiffest fit still has): faded
+    # out around them, wider each round
     faded = np.zeros(len(fit), dtype=bool)
     changed = None  # (after the first test, only about the vertices a fade changed)
     for rings in range(settings.fade_rings, settings.fade_rings + settings.fade_rounds + 1):
@@ -274,7 +272,7 @@ def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, bac
         faded_before = d
         d = fade(d, faces, np.flatnonzero(faded), rings)
         changed = np.flatnonzero(np.any(d != faded_before, axis=1))
-    return Detail(None, levels, stiffened, int(faded.sum()), "it made the surface cross itself",
+    return Detail(None, levels, stiffened, int(faded.sum()), "it flipped faces or made the surface cross itself",
                   time.perf_counter() - t0)
 
 
