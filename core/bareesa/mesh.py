@@ -290,6 +290,26 @@ def self_intersections(verts, faces):
     return np.unique(np.sort(found, axis=1), axis=0).reshape(-1, 2)
 
 
+def vertex_adjacency(n, faces):
+    """Which vertices share an edge: N, faces (F, 3) -> scipy.sparse csr (N, N) of 0/1, symmetric."""
+    e = np.asarray(faces)[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    a = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
+    return ((a + a.T) > 0).astype(np.float64)
+
+
+def edge_split(faces, n_verts):
+    """Each face split in four at one new vertex per edge: faces (F, 3), N -> edges (E, 2) (new vertex N + e
+    lies on edge e) and faces (4F, 3): the corners' three faces, then the middle ones (face k + jF from
+    face k)."""
+    faces = np.asarray(faces, dtype=np.int64)
+    directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    edges, inverse = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True)
+    m01, m12, m20 = (n_verts + inverse.reshape(-1, 3)).T
+    a, b, c = faces.T
+    return edges, np.concatenate([np.stack(x, 1) for x in ((a, m01, m20), (m01, b, m12), (m20, m12, c),
+                                                           (m01, m12, m20))])
+
+
 def check_mesh(verts, faces, name="mesh"):
     """The MeshError checks of :func:`validate_mesh`: -> verts (N, 3) float64, faces (F, 3) int64"""
     v, f = _numpy(verts), _numpy(faces)

@@ -29,13 +29,12 @@ import json
 from pathlib import Path
 
 import numpy as np
-import scipy.sparse as sp
 import trimesh
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .errors import InputError
-from .mesh import check_mesh, face_geometry, surface_center_radius
+from .mesh import check_mesh, face_geometry, surface_center_radius, vertex_adjacency
 from .transforms import Similarity
 
 REMESH_CHOICES = ("voxel", "isotropic", "none")
@@ -96,18 +95,11 @@ def _drop_nonmanifold(faces, max_rounds=5):
     return faces
 
 
-def _vertex_adjacency(n, faces):
-    e = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    a = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
-    a = ((a + a.T) > 0).astype(np.float64)
-    return a
-
-
 def _drop_small_components(verts, faces, min_fraction):
     """Remove connected pieces with less than ``min_fraction`` of the faces (scan clean-up)."""
     if len(faces) == 0 or min_fraction <= 0:
         return _compact(verts, faces)
-    n_comp, labels = connected_components(_vertex_adjacency(len(verts), faces), directed=False)
+    n_comp, labels = connected_components(vertex_adjacency(len(verts), faces), directed=False)
     if n_comp == 1:
         return _compact(verts, faces)
     face_label = labels[faces[:, 0]]
@@ -168,7 +160,7 @@ def relax_remesh(verts, faces, fine, iterations=8, step=0.5):
     fine_v, fine_f = fine
     fine_n = _vertex_normals(fine_v, fine_f)
     tree = cKDTree(fine_v)
-    adj = _vertex_adjacency(len(verts), faces)
+    adj = vertex_adjacency(len(verts), faces)
     deg = np.maximum(np.asarray(adj.sum(1)).ravel(), 1.0)
     v = verts.copy()
     for _ in range(iterations):

@@ -7,6 +7,8 @@ Returns numpy arrays ``verts (N, 3) float64`` and ``faces (F, 3) int64``.
 import numpy as np
 import trimesh
 
+from .mesh import edge_split
+
 
 def icosphere(subdivisions=3, radius=1.0):
     """Unit icosphere: -> verts (N, 3), faces (F, 3)."""
@@ -151,13 +153,9 @@ def remesh_same_surface(verts, faces, seed=0):
     """
     rng = np.random.default_rng(seed)
     verts, faces = np.asarray(verts, dtype=np.float64), np.asarray(faces, dtype=np.int64)
-    directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    edges, inverse = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True)
+    edges, split = edge_split(faces, len(verts))
     t = rng.uniform(0.3, 0.7, size=(len(edges), 1))
     new = (1 - t) * verts[edges[:, 0]] + t * verts[edges[:, 1]]
-    m01, m12, m20 = (len(verts) + inverse.reshape(-1, 3)).T
-    a, b, c = faces.T
-    split = np.concatenate([np.stack(x, 1) for x in ((a, m01, m20), (m01, b, m12), (m20, m12, c), (m01, m12, m20))])
     all_verts = np.concatenate([verts, new])
     perm = rng.permutation(len(all_verts))
     rank = np.empty_like(perm)

@@ -240,7 +240,7 @@ def geodesic_between(basis, a, b, options=Options(), callback=None, cancel=None)
     weights = options.metric(basis)
     if isinstance(a, Scan) and isinstance(b, Scan):
         config = options.registration_config(basis)
-        share = 0.85 if config.detail.enabled else 1.0  # the detail layers of both ends after the matching
+        share = registration.DETAIL_SHARE if config.detail.enabled else 1.0  # then both ends' detail layers
         m = registration.symmetric_match(basis, (a.verts, a.faces), (b.verts, b.faces), steps=options.steps,
                                          config=config, weights=None if options.weights is None else weights,
                                          face_weights=(a.face_weights, b.face_weights),

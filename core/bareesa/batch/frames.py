@@ -63,8 +63,9 @@ def _worker_address():
 def register_one(basis, scan, previous=None, threads=1, options=None):
     """Register one scan file (run on a worker): -> record dict (status "ok" with the result, or "failed"
     with the one-line error; "vertices" the registered mesh in the scan's frame, detailed when the detail
-    layer was kept, "detail" its report, "detail_layer" (N, 3) the layer in the template frame or None). previous: the previous frame's record (warm start from its code and
-    transform) or None (full registration); options: keyword arguments of ``registration.register``."""
+    layer was kept, "detail" its report, "detail_layer" (N, 3) the layer in the template frame or None).
+    previous: the previous frame's record (warm start from its code and transform) or None (full
+    registration); options: keyword arguments of ``registration.register``."""
     import torch
 
     torch.set_num_threads(threads)
@@ -80,8 +81,7 @@ def register_one(basis, scan, previous=None, threads=1, options=None):
         if side["ignore"] is not None:
             kwargs["scan_face_weights"] = read_face_weights(side["ignore"], faces, len(verts))
         marks = None if side["landmarks"] is None else read_scan_landmarks(side["landmarks"], basis)
-        previous_ok = previous is not None and previous.get("status") == "ok"
-        if previous_ok:
+        if previous is not None and previous.get("status") == "ok":
             # warm start: map the scan by the previous alignment, start from the previous code
             # and run the finest levels only (the coarser ones find a far pose the previous frame gives)
             before = Similarity.from_dict(previous["transform"])
@@ -91,11 +91,11 @@ def register_one(basis, scan, previous=None, threads=1, options=None):
                                         init_code=np.asarray(previous["code"]), pose_candidates=None,
                                         landmarks=_moved_landmarks(marks, before), **kwargs)
             transform = res.transform.compose(before)
-            vertices = before.invert(res.output_vertices)
+            vertices, basis_fit = before.invert(res.output_vertices), before.invert(res.vertices)
             out["warm_start"] = previous["name"]
         else:
             res = registration.register(basis, verts, faces, landmarks=marks, **kwargs)
-            transform, vertices = res.transform, res.output_vertices
+            transform, vertices, basis_fit = res.transform, res.output_vertices, res.vertices
             out["warm_start"] = None
     except BareEsaError as err:
         return {**out, "status": "failed", "error": f"{type(err).__name__}: {err}".splitlines()[0],
@@ -109,9 +109,8 @@ def register_one(basis, scan, previous=None, threads=1, options=None):
             "poor_fit": getattr(res, "poor_fit", None),
             "retried_alignments": int(getattr(res, "retried_alignments", 0)),
             "iterations": int(sum(lv.get("iterations", 0) for lv in levels)),
-            "detail": res.detail_report, "basis_fit_chamfer": chamfer(before.invert(res.vertices) if previous_ok
-                                                                      else res.vertices, verts), "seconds": time.perf_counter() - start, "vertices": vertices,
-            "detail_layer": res.detail}
+            "detail": res.detail_report, "basis_fit_chamfer": chamfer(basis_fit, verts),
+            "seconds": time.perf_counter() - start, "vertices": vertices, "detail_layer": res.detail}
 
 
 def chain_frame(basis, scan, name, previous, threads, options):

@@ -38,7 +38,7 @@ from scipy.spatial import cKDTree
 
 from .. import h2_metric, optimize
 from ..geometry import vertex_areas
-from ..mesh import face_geometry, self_intersections
+from ..mesh import edge_split, face_geometry, self_intersections, vertex_adjacency
 from ..varifold import VarifoldLoss, default_cutoff, is_oriented
 from .problem import orient_like
 
@@ -106,17 +106,6 @@ def data_stiffness(objective, x, stiff_matrix, stiffness, mass, probe=1e-4):
     return max(float(curvature), 0.0)
 
 
-def midpoint_subdivision(faces, n_verts):
-    """Each face split in four at its edges' midpoints: (F, 3), N -> edges (E, 2) (the new vertex N + e is the
-    midpoint of edge e), faces (4F, 3) and the face each comes from (4F,)."""
-    directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    edges, inverse = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True)
-    m01, m12, m20 = (n_verts + inverse.reshape(-1, 3)).T
-    a, b, c = faces.T
-    split = np.concatenate([np.stack(x, 1) for x in ((a, m01, m20), (m01, b, m12), (m20, m12, c), (m01, m12, m20))])
-    return edges, split, np.tile(np.arange(len(faces)), 4)
-
-
 def vertex_normals(verts, faces):
     """Area-weighted unit vertex normals of a consistently wound mesh: (N, 3), (F, 3) -> (N, 3)."""
     vectors = face_geometry(verts, faces)[0]
@@ -139,9 +128,7 @@ def fade(displacement, faces, vertices, rings):
     """The displacement (N, 3) faded to 0 at ``vertices`` and over ``rings`` rings of edges around them
     (linearly in the ring): -> (N, 3)."""
     n = displacement.shape[0]
-    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    adjacency = scipy.sparse.csr_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
-    adjacency = ((adjacency + adjacency.T) > 0).astype(np.float64)
+    adjacency = vertex_adjacency(n, faces)
     reached = np.zeros(n, dtype=bool)
     reached[vertices] = True
     keep = np.where(reached, 0.0, 1.0)
@@ -201,9 +188,9 @@ def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, bac
     # a subdivided level's data term sees each face as its four midpoint sub-faces: one point per face is
     # too coarse a quadrature at a sigma under the template's edge length (it biases the fit by a fraction
     # of a millimetre; three Strang-Fix points measured a little less close for a little less time)
-    edges, fine_faces, parent = midpoint_subdivision(faces, len(fit))
+    edges, fine_faces = edge_split(faces, len(fit))  # (sub-face k + jF from face k)
     edges, fine_faces = torch.as_tensor(edges, device=device), torch.as_tensor(fine_faces, device=device)
-    weights_of = {False: torch.as_tensor(reached, **on), True: torch.as_tensor(reached[parent], **on)}
+    weights_of = {False: torch.as_tensor(reached, **on), True: torch.as_tensor(np.tile(reached, 4), **on)}
     ramp = torch.linspace(0, 1, settings.steps + 1, **on)[:, None, None]
     stiff_matrix = h2_metric.sparse_metric(q.cpu(), f.cpu(), metric)  # the energy's Hessian at d = 0 is 2 x this
     areas = vertex_areas(q, f)

@@ -28,9 +28,9 @@ TABLE_CELLS_PER_POINT = 16  # a grid keeps a table of where each cell's points b
 RANGES_MARGIN = 0.025
 
 
-def ranges_reach(cutoff):
-    """How far block-sparse ranges reach for a cutoff: cutoff (1 + 2 RANGES_MARGIN)."""
-    return cutoff * (1 + 2 * RANGES_MARGIN)
+def ranges_reach(cutoff, margin=RANGES_MARGIN):
+    """How far block-sparse ranges reach for a cutoff: cutoff (1 + 2 margin)."""
+    return cutoff * (1 + 2 * margin)
 
 
 # --------------------------------------------------------------------------- kinds of measures
@@ -380,7 +380,7 @@ class KeptRanges:
     def get(self, x, y, cutoff, grid=None):
         """(grid of y, ``Grid.ranges``' output) for the i points x (N, 3) and the j points y (M, 3):
         ``grid`` is y's when y is fixed (kept by the caller), None when y moves (a grid is then kept here).
-        They reach ``margin`` x cutoff beyond it (RANGES_MARGIN unless the KeptRanges was given another)."""
+        They reach ``margin`` x cutoff beyond it (the KeptRanges' margin, RANGES_MARGIN by default)."""
         margin = self.margin * cutoff
         if self._kept is not None:
             x0, y0, given, kept_cutoff, kept_grid, out = self._kept
@@ -389,7 +389,7 @@ class KeptRanges:
                 return kept_grid, out
         moving = grid is None
         kept_grid = Grid(y, cutoff) if moving else grid
-        out = kept_grid.ranges(x, cutoff + 2 * margin, CLUSTER_FRACTION * cutoff)
+        out = kept_grid.ranges(x, ranges_reach(cutoff, self.margin), CLUSTER_FRACTION * cutoff)
         self._kept = (x.clone(), y.clone() if moving else None, grid, cutoff, kept_grid, out)
         return kept_grid, out
 

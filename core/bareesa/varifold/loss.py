@@ -7,7 +7,7 @@ from torch.autograd.function import once_differentiable
 
 from ..errors import InputError
 from ..geometry import face_centers
-from .backends import Engine, FacePairs, FeaturePairs, Grid, KeptRanges
+from .backends import RANGES_MARGIN, Engine, FacePairs, FeaturePairs, Grid, KeptRanges
 from .kernels import check_options, resolve_backend
 from .measure import binned_measure, cell_features, cell_groups, check_mesh, group_features, varifold_measure
 
@@ -69,12 +69,12 @@ def varifold_inner(centers, normals, weights, other_centers, other_normals, othe
 class _FixedTarget:
     """What a squared distance to a fixed target measure caches: the target's grid and self term."""
 
-    def _start(self, measure, requires_grad, ranges_margin=None):
+    def _start(self, measure, requires_grad, ranges_margin=RANGES_MARGIN):
         self._measure, self.target_requires_grad = measure, requires_grad
         self._grid = None
         self._self = {}
-        margin = () if ranges_margin is None else (ranges_margin,)
-        self._kept = {"self": KeptRanges(*margin), "cross": KeptRanges(*margin)}  # the moving source's terms' ranges
+        # the moving source's terms' ranges
+        self._kept = {"self": KeptRanges(ranges_margin), "cross": KeptRanges(ranges_margin)}
         self.stats = {}
 
     def _target_grid(self, engine):
@@ -126,13 +126,13 @@ class VarifoldLoss(_FixedTarget):
     saving is not worth the approximation and its dependence on the cell grid); the source
     stays exact. Not for a target that
     requires grad. ``target_points`` is the number of target points used. ``ranges_margin`` (a share of
-    the cutoff, default ``backends.RANGES_MARGIN``): how far the truncated backend's kept block-sparse
+    the cutoff): how far the truncated backend's kept block-sparse
     ranges reach beyond the cutoff, and so how far the source may move before they are found again (a
     solve whose steps move points further, e.g. free vertex displacements, keeps them with a wider one).
     """
 
     def __init__(self, target_verts, target_faces, sigma, kernel="binet", backend="auto",
-                 target_weights=None, cutoff=None, target_cell=None, ranges_margin=None):
+                 target_weights=None, cutoff=None, target_cell=None, ranges_margin=RANGES_MARGIN):
         self.sigma = check_options(sigma, kernel, backend, cutoff)
         if target_cell is not None and not (float(target_cell) > 0 and math.isfinite(float(target_cell))):
             raise InputError(f"target_cell must be a positive finite length or None, got {target_cell}")
