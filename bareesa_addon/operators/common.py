@@ -179,31 +179,21 @@ def scan_input(context, obj, basis):
 
 
 def object_input(context, obj, basis):
-    """The workflow input of an object as it is now: KnownCode if registered (checked against basis), else Scan."""
+    """The workflow input of an object as it is now: KnownCode if registered (checked against basis; with the
+    detail its detail keys add, ``object_detail``), else Scan."""
     wf = workflows()
     if is_registered(obj):
-        return wf.KnownCode(registered_code(obj, basis, solver.field_names(basis)))
+        return wf.KnownCode(registered_code(obj, basis, solver.field_names(basis)), detail=object_detail(obj, basis))
     return scan_input(context, obj, basis)
 
 
 def object_detail(obj, basis):
     """The off-basis detail (N, 3) a registered object adds with its detail keys as they are now
-    (``convert.detail_of``): what a ``KnownCode`` of it leaves out; None for a scan or an object without."""
+    (``convert.detail_of``): its ``KnownCode``'s detail; None for a scan or an object without."""
     if not is_registered(obj):
         return None
     detail = cv.detail_of(obj)
     return None if detail is None or detail.shape != basis.template.shape else detail
-
-
-def carried_detail(own, ends, times):
-    """The inputs' off-basis detail carried along a path, as ``workflows.path_between`` and ``extrapolate``
-    carry it: each end's own (``object_detail`` of a registered object) or else the solve's (a scan's detail
-    layer, ``Code.detail``), blended along times (T,) by ``latent.detail_along`` when both ends have some:
-    -> (T, N, 3), or None."""
-    details = [mine if mine is not None else end.detail for mine, end in zip(own, ends)]
-    if any(d is None for d in details):
-        return None
-    return solver.module("latent").detail_along(*details, times)
 
 
 #: The training range of a code: mean +- this many standard deviations of the basis' training codes

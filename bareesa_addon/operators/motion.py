@@ -1,9 +1,9 @@
 """Transfer Motion.
 
 The identity's off-basis detail goes onto the new object as ``workflows.Transfer.detail`` carries it (the
-same on every frame): its detail keys as they are now (a registered object, ``convert.detail_of``) or its
-detail layer (a scan registered by the solve), one 'Detail' key at 1. The motion's own detail stays with
-the body that made it.
+same on every frame): its detail keys as they are now (a registered object's ``KnownCode`` carries them,
+``convert.detail_of``) or its detail layer (a scan registered by the solve), one 'Detail' key at 1. The
+motion's own detail stays with the body that made it.
 """
 
 import bpy
@@ -13,8 +13,8 @@ from bpy.props import StringProperty
 from .. import convert as cv
 from ..jobs import SolveOperator, Task
 from .common import (TRAINING_STDS, add_registered, check_codes, common_basis, find_object, first_frame, frame_range,
-                     is_registered, object_detail, object_input, refuse, select_only, selected_meshes, settings,
-                     solve_options, sorted_meshes, template_object, training_excess, workflows, write_keys)
+                     is_registered, object_input, refuse, select_only, selected_meshes, settings, solve_options,
+                     sorted_meshes, template_object, training_excess, workflows, write_keys)
 
 
 def motion_objects(source, collection):
@@ -94,8 +94,7 @@ class BAREESA_OT_transfer_motion(SolveOperator, bpy.types.Operator):
         group = s.identity_group
         basis.group_slice(group)  # an unknown group is reported now
         frames_in, frames = motion_frames(context, objects, collection is not None, basis)
-        target_in = object_input(context, target, basis)
-        own = object_detail(target, basis)
+        target_in = object_input(context, target, basis)  # (a registered one's with its detail)
         options = solve_options(context, basis)
         target_name = target.name
         wf = workflows()
@@ -117,9 +116,8 @@ class BAREESA_OT_transfer_motion(SolveOperator, bpy.types.Operator):
                                   hint=result.motion)
             obj.matrix_world = body.matrix_world
             write_keys(obj, basis, frames, result.motion)
-            detail = own if own is not None else result.identity.detail
-            if detail is not None:
-                cv.set_detail_key(obj, basis.template, detail)
+            if result.identity.detail is not None:
+                cv.set_detail_key(obj, basis.template, result.identity.detail)
             excess = training_excess(basis, result.motion)
             obj[cv.PROP_RANGE] = excess
             select_only(context, made + [obj])

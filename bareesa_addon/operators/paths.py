@@ -20,18 +20,18 @@ from .. import convert as cv
 from .. import solver
 from ..jobs import SolveOperator, Task
 from ..properties import EXTRAPOLATE_SOURCES
-from .common import (add_registered, carried_detail, check_codes, common_basis, find_object, first_frame,
-                     frame_range, has_pair_or_selection, is_registered, new_collection, object_basis, object_detail,
-                     object_input, output_path, own_or_panel, pick_pair, refuse, registered_code, select_only,
-                     settings, solve_options, sorted_meshes, template_object, workflows, write_keys)
+from .common import (add_registered, check_codes, common_basis, find_object, first_frame, frame_range,
+                     has_pair_or_selection, is_registered, new_collection, object_basis, object_detail, object_input,
+                     output_path, own_or_panel, pick_pair, refuse, registered_code, select_only, settings,
+                     solve_options, sorted_meshes, template_object, workflows, write_keys)
 
 
-def detail_note(detail, own, ends, names):
-    """What a path's report says of the detail it carries (detail (T, N, 3) or None; own, ends and names of
+def detail_note(detail, ends, names):
+    """What a path's report says of the detail it carries (detail (T, N, 3) or None; the Codes and names of
     its two inputs)."""
     if detail is not None:
         return "; with the inputs' detail (Detail keys)"
-    has = [mine is not None or end.detail is not None for mine, end in zip(own, ends)]
+    has = [end.detail is not None for end in ends]
     if any(has):
         return f"; without detail: only '{names[has.index(True)]}' has some"
     return ""
@@ -58,8 +58,7 @@ class BAREESA_OT_interpolate(SolveOperator, bpy.types.Operator):
     def prepare(self, context):
         a, b = pick_pair(context, self.object_a, self.object_b)
         basis, ref = common_basis(context, (a, b))
-        inputs = [object_input(context, o, basis) for o in (a, b)]
-        own = [object_detail(o, basis) for o in (a, b)]
+        inputs = [object_input(context, o, basis) for o in (a, b)]  # (a registered one's with its detail)
         frames = frame_range(context)
         options, anchor = solve_options(context, basis), own_or_panel(self, context, "anchor")
         make_meshes = settings(context).make_collection
@@ -76,7 +75,7 @@ class BAREESA_OT_interpolate(SolveOperator, bpy.types.Operator):
             cv.check_code(path, "the geodesic")
             a_obj, b_obj = (find_object(n) for n in names_ab)
             ts = np.linspace(0.0, 1.0, len(frames))  # path_between's times of the frames
-            detail = carried_detail(own, found.ends, ts)
+            detail = found.detail
             made = []
             ends = []
             for obj, end in zip((a_obj, b_obj), found.ends):
@@ -105,7 +104,7 @@ class BAREESA_OT_interpolate(SolveOperator, bpy.types.Operator):
                     frame_obj.matrix_world = m
             select_only(context, made + [obj])
             return (f"'{name}': geodesic keyframed on frames {frames[0]}-{frames[-1]}, "
-                    f"distance {found.distance:.4g}{detail_note(detail, own, found.ends, names_ab)}")
+                    f"distance {found.distance:.4g}{detail_note(detail, found.ends, names_ab)}")
 
         return Task("interpolate", solve, apply)
 
@@ -145,7 +144,7 @@ class BAREESA_OT_extrapolate(SolveOperator, bpy.types.Operator):
             basis, ref = common_basis(context, (a, b))
             names = solver.field_names(basis)
             alpha0, alpha1 = registered_code(a, basis, names), registered_code(b, basis, names)
-            own = [object_detail(o, basis) for o in (a, b)]
+            details = [object_detail(o, basis) for o in (a, b)]
             names_ab = (a.name, b.name)
             target_name = None
             frames = first_frame(context) + s.extrapolate_spacing * np.arange(s.extrapolate_steps + 2)
@@ -164,14 +163,14 @@ class BAREESA_OT_extrapolate(SolveOperator, bpy.types.Operator):
                                          "give a direction")
             f0, f1 = keyed[-2], keyed[-1]
             alpha0, alpha1 = cv.code_at_frame(obj, names, f0), cv.code_at_frame(obj, names, f1)
-            own, names_ab = [None, None], None
+            details, names_ab = [None, None], None
             target_name = obj.name
             frames = f1 + (f1 - f0) * np.arange(-1, s.extrapolate_steps + 1)
             label = obj.name
         options, n_new = solve_options(context, basis), s.extrapolate_steps
         anchor = own_or_panel(self, context, "anchor")
         wf = workflows()
-        ends = (wf.KnownCode(alpha0), wf.KnownCode(alpha1))
+        ends = (wf.KnownCode(alpha0, detail=details[0]), wf.KnownCode(alpha1, detail=details[1]))
 
         def solve(callback, cancel):
             return wf.extrapolate(basis, *ends, n_new, options, anchor=anchor, callback=callback, cancel=cancel)
@@ -187,12 +186,12 @@ class BAREESA_OT_extrapolate(SolveOperator, bpy.types.Operator):
             note = ""
             if target_name is None:
                 times = np.arange(len(path), dtype=np.float64)  # extrapolate's: the inputs at 0 and 1
-                detail = carried_detail(own, motion.ends, times)
+                detail = motion.detail
                 obj = template_object(context, basis, ref, label, code=path[0], hint=path)
                 write_keys(obj, basis, frames, path)
                 if detail is not None:
                     cv.write_detail(obj, basis.template, frames, detail, times)
-                note = detail_note(detail, own, motion.ends, names_ab)
+                note = detail_note(detail, motion.ends, names_ab)
                 select_only(context, [obj])
             else:
                 obj = find_object(target_name)

@@ -44,9 +44,11 @@ class TemplateMesh:
 
 @dataclass(frozen=True, eq=False)
 class KnownCode:
-    """A latent code known already (e.g. read from shape keys): code (P,)."""
+    """A latent code known already (e.g. read from shape keys): code (P,); detail (N, 3) its off-basis detail
+    in the template frame (e.g. a registered object's detail layer), or None."""
 
     code: np.ndarray
+    detail: np.ndarray | None = None
 
 
 def mesh_input(basis, verts, faces):
@@ -149,7 +151,8 @@ class MatchedEnd:
 @dataclass
 class Code:
     """The code (P,) of one input; detail (N, 3) its off-basis detail, template frame: what the basis misses of a
-    TemplateMesh, the detail layer of a registered or matched Scan (``registration.detail``; None without);
+    TemplateMesh, the detail layer of a registered or matched Scan (``registration.detail``), a KnownCode's own
+    (None without);
     registration the RegistrationResult of a Scan, or the MatchedEnd of a matched one (else None)."""
 
     code: np.ndarray
@@ -160,7 +163,8 @@ class Code:
 def code_of(basis, item, options=Options(), callback=None, cancel=None):
     """The code of one input: a KnownCode as is, a TemplateMesh projected, a Scan registered: -> Code."""
     if isinstance(item, KnownCode):
-        return Code(np.asarray(item.code, dtype=np.float64))
+        detail = None if item.detail is None else np.asarray(item.detail, dtype=np.float64)
+        return Code(np.asarray(item.code, dtype=np.float64), detail=detail)
     if isinstance(item, TemplateMesh):
         code = latent.project_to_basis(basis, item.verts)[0]
         return Code(code, detail=latent.off_basis_detail(basis, item.verts, code))

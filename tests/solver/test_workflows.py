@@ -273,3 +273,16 @@ def test_a_crease_is_judged_against_the_motions_inputs_not_the_template(sphere):
     tri = basis.faces[0]
     squashed[tri[2]] = squashed[tri[:2]].mean(0)  # one triangle flattened to a segment: creased whatever the inputs
     assert workflows.creased(basis.template, basis.faces, squashed, reference=reference)
+
+
+def test_a_known_codes_detail_is_carried_along_a_path_and_a_continuation(sphere):
+    basis, _ = sphere
+    rng = np.random.default_rng(3)
+    detail_a, detail_b = (0.01 * rng.normal(size=basis.template.shape) for _ in range(2))
+    a, b = workflows.KnownCode(A, detail=detail_a), workflows.KnownCode(B, detail=detail_b)
+    found = workflows.path_between(basis, a, b, 5)
+    assert np.allclose(found.detail[0], detail_a) and np.allclose(found.detail[-1], detail_b)
+    assert np.allclose(found.detail[2], (detail_a + detail_b) / 2)
+    assert workflows.path_between(basis, a, workflows.KnownCode(B), 5).detail is None  # one end without: none
+    moved = workflows.transfer(basis, [workflows.KnownCode(A), workflows.KnownCode(B)], a, "all")
+    assert moved.detail.shape == (2,) + basis.template.shape and np.allclose(moved.detail[1], detail_a)
