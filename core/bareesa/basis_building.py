@@ -10,6 +10,7 @@ from .errors import InputError
 from .geodesics import geodesic
 from .h2_metric import H2Weights, assembled_metric_matrix, path_energy
 from .latent import PAPER_BODY_SCHEDULE, Basis
+from .metric_fit import choose_motion_metric
 from .optimize import minimize_lbfgs
 from .progress import Monitor
 from .threads import with_one_blas_thread
@@ -71,9 +72,13 @@ def build_basis(template, faces, groups, components, weights="body", scale=None,
     groups: {name: list of sequences (T_i, N, 3)} in template topology;
     components: {name: K} the number of fields kept per group; groups named in
     ``elastic`` use the steps of parametrised H2 geodesics between consecutive
-    meshes instead of plain differences (the paper's shape basis); landmarks: {name: template vertex}.
+    meshes instead of plain differences (the paper's shape basis); landmarks: {name: template vertex};
+    weights: the metric of motion paths, a preset, six numbers or "fit" (``metric_fit.choose_motion_metric``
+    on the sequences of the groups with two or more; the paper's body weights build elastic groups then).
     """
     template = np.asarray(template, dtype=np.float64)
+    fit = isinstance(weights, str) and weights == "fit"
+    construction_weights = H2Weights.parse("body" if fit else weights)
     unknown = set(elastic) - set(groups)
     if unknown:
         raise InputError(f"elastic construction asked for unknown groups {', '.join(sorted(unknown))}")
@@ -88,7 +93,7 @@ def build_basis(template, faces, groups, components, weights="body", scale=None,
             raise InputError(f"group '{gname}': number of components must be >= 1, got {k}")
         if gname in elastic:
             tangents = elastic_tangents([np.asarray(x, dtype=np.float64) for x in seqs], faces,
-                                        H2Weights.parse(weights), steps=elastic_steps, callback=callback,
+                                        construction_weights, steps=elastic_steps, callback=callback,
                                         cancel=cancel)
         else:
             tangents = sequence_tangents(seqs)
@@ -105,9 +110,20 @@ def build_basis(template, faces, groups, components, weights="body", scale=None,
         scale = float(ext.max())
     prov = dict(provenance or {})
     prov["groups"] = report
-    return Basis(template=template, faces=np.asarray(faces), fields=np.concatenate(blocks), groups=ranges,
-                 weights=weights, schedule=schedule, scale=scale, name=name, units=units, provenance=prov,
-                 landmarks=landmarks or {})
+    basis = Basis(template=template, faces=np.asarray(faces), fields=np.concatenate(blocks), groups=ranges,
+                  weights=construction_weights, schedule=schedule, scale=scale, name=name, units=units,
+                  provenance=prov, landmarks=landmarks or {})
+    if fit:
+        motions = [s for seqs in groups.values() if len(seqs) >= 2 for s in seqs]
+        chosen = choose_motion_metric(basis, motions, callback=callback, cancel=cancel)
+        basis.weights, basis.shape_weights = chosen.weights, construction_weights
+        basis.provenance["metric_fit"] = chosen.card()
+    return basis
+
+
+def fits_metric(groups):
+    """Whether ``build_basis`` fits the motion metric by default: a group has two or more sequences."""
+    return any(len(seqs) >= 2 for seqs in groups.values())
 
 
 #: Meshes up to this many vertices get the metric-whitened solver (dense 3N x 3N metric matrix).

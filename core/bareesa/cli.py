@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from . import __version__
-from .basis_building import build_basis
+from .basis_building import build_basis, fits_metric
 from .basis_io import DEFAULT_BASIS, load_basis, save_basis
 from .cli_inputs import load_input, load_path, parse_components, parse_sequences, registration_overrides
 from .errors import BareEsaError, InputError
@@ -117,9 +117,14 @@ def cmd_build_basis(args):
     provenance = {"template": str(args.template),
                   "sequences": {g: [[str(p) for p in files] for files in s] for g, s in groups.items()}}
     landmarks = read_template_landmarks(args.landmarks, len(template)) if args.landmarks else None
-    basis = build_basis(template, faces, sequences, components, weights=args.metric,
-                        name=args.name or args.output.stem, units=args.units, provenance=provenance,
-                        elastic=tuple(args.elastic or ()), landmarks=landmarks)
+    metric = args.metric or ("fit" if fits_metric(sequences) else "body")
+    callback, close = tqdm_callback("build basis")
+    try:
+        basis = build_basis(template, faces, sequences, components, weights=metric,
+                            name=args.name or args.output.stem, units=args.units, provenance=provenance,
+                            elastic=tuple(args.elastic or ()), landmarks=landmarks, callback=callback)
+    finally:
+        close()
     if not args.no_distribution:
 
         basis.extras.update(fit_training_distribution(basis, [f for s in sequences.values() for f in s]))
@@ -129,6 +134,10 @@ def cmd_build_basis(args):
     save_basis(args.output, prepare_basis(basis))  # (with the constants every registration would compute)
     rows = {g: f"{b - a} fields, explained variance {basis.provenance['groups'][g]['explained_variance']:.4f}"
             for g, (a, b) in basis.groups.items()}
+    fit = basis.provenance.get("metric_fit")
+    rows["metric"] = ",".join(f"{w:.4g}" for w in basis.weights.as_tuple()) + (
+        "" if fit is None else f" ({fit['chosen']}; held-out frame error " + ", ".join(
+            f"{k} {v:.4g}" for k, v in fit["held_out_frame_error"].items()) + ")")
     _print(rows, False, f"wrote {args.output} ({basis.n_fields} fields)")
 
 
@@ -482,7 +491,10 @@ def build_parser():
                    help="frames of one registered sequence, in order (repeatable, several per group), or "
                    "GROUP:DIR with DIR a register-batch output folder (its registered meshes, in order)")
     p.add_argument("--components", action="append", metavar="GROUP=K", help="fields kept per group (default 10)")
-    p.add_argument("--metric", default="body", help="metric weights stored with the basis (preset or six numbers)")
+    p.add_argument("--metric", default=None,
+                   help="metric of motion paths: fit (default when a group has two or more sequences: the weights "
+                        "that make the training motions closest to geodesics, if they predict held-out frames "
+                        "better than the presets), body (default otherwise), face or six numbers a0,a1,b1,c1,d1,a2")
     p.add_argument("--elastic", action="append", metavar="GROUP",
                    help="build GROUP from elastic H2 geodesics between consecutive frames (paper's shape basis)")
     p.add_argument("--no-distribution", action="store_true",
