@@ -45,6 +45,28 @@ def store_derived(path):
     return list(derived)
 
 
+def refit_motion_metric(path):
+    """Refit the motion metric of a built human basis (``human.fit_motion_metric``) and store it with its
+    template metric; the fields and everything else stay as they are."""
+    import torch
+
+    from bareesa.basis_io import add_extras, load_basis, update_card
+
+    from bases.build import human
+
+    torch.set_num_threads(1)
+    start = time.perf_counter()
+    sequences = human.motion_sequences(_log)
+    _log(f"baked {len(sequences)} training motions ({time.perf_counter() - start:.0f} s)")
+    basis = load_basis(path)
+    fit = human.fit_motion_metric(basis, sequences, _log)
+    basis.extras.pop("template_metric", None)
+    add_extras(path, template_metric=basis.template_metric(), template_metric_weights=np.array(fit.weights.as_tuple()))
+    update_card(path, metric=list(fit.weights.as_tuple()),
+                provenance=basis.provenance | {"metrics": human.METRICS_NOTE})
+    _log(f"{path}: motion metric {fit.chosen} ({time.perf_counter() - start:.0f} s)")
+
+
 DERIVED_NOTE = ("computed from the stored fields by bareesa.registration.prepare_basis (python -m bases.build "
                 "--derived): G-bar(0) in the shape weights, the decoded pose prototypes' surface moments")
 
@@ -60,10 +82,20 @@ def main(argv=None):
                         help="also write float64 copies to DIR (to compare accuracy with the shipped precision)")
     parser.add_argument("--derived", action="store_true",
                         help="only recompute the derived constants of bases already built (no bpy, no Anny)")
+    parser.add_argument("--motion-metric", action="store_true",
+                        help="human only: refit the motion metric of the basis already built to its training motions "
+                             "(fields unchanged; needs Anny)")
     args = parser.parse_args(argv)
     unknown = set(args.names) - set(BUILDERS)
     if unknown:
         parser.error(f"unknown basis {', '.join(sorted(unknown))}; choose from {', '.join(BUILDERS)}")
+
+    if args.motion_metric:
+        path = args.output / "human.npz"
+        if set(args.names) - {"human"} or not path.exists():
+            sys.exit(f"error: --motion-metric refits {path}, the human basis; build it first")
+        refit_motion_metric(path)
+        return
 
     if args.derived:
         for name in dict.fromkeys(args.names or DEFAULT):

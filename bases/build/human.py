@@ -52,6 +52,10 @@ NAME = "human"
 #: weights their geodesics bend the fingers), shapes measured from the template in the paper's
 #: (``Basis.shape_weights``); see docs/decisions/101-human-motion-metric.md.
 MOTION_WEIGHTS = (1e4, 1000.0, 100.0, 1.0, 1.0, 0.01)
+#: The motion metric the basis keeps is fitted to the training motions of this many performers (the template
+#: and the first training identities; ``bareesa.metric_fit``), against the presets and MOTION_WEIGHTS
+#: (docs/decisions/023-motion-metric-fit.md).
+METRIC_FIT_PERFORMERS = 5
 SHAPE_WEIGHTS = (1.0, 1000.0, 100.0, 1.0, 1.0, 1.0)
 SEED = 17
 TOPOLOGY = "anny-noeyes-notongue"
@@ -594,6 +598,38 @@ def generate(log=print, test=True, motion_identities=MOTION_IDENTITIES, n_train=
     return data
 
 
+METRICS_NOTE = ("metric: motion paths (fitted to the training motions, provenance.metric_fit); shape_metric: "
+                "registration and random bodies (the paper's body weights)")
+
+
+def fit_motion_metric(basis, sequences, log=print):
+    """Set the basis' motion metric to the one ``bareesa.metric_fit.choose_motion_metric`` keeps on the training
+    motions {(performer, motion): (T, N, 3)} of the first METRIC_FIT_PERFORMERS performers (candidates: the
+    presets and MOTION_WEIGHTS, the hand-picked grid of decision 101): -> the MetricFit."""
+    from bareesa.metric_fit import choose_motion_metric
+
+    motions = [np.asarray(s, dtype=np.float64) for (i, _), s in sequences.items() if i < METRIC_FIT_PERFORMERS]
+    fit = choose_motion_metric(basis, motions, candidates={"body": "body", "face": "face", "grid": MOTION_WEIGHTS})
+    basis.weights = fit.weights
+    basis.provenance["metric_fit"] = fit.card() | {
+        "training_motions": f"{len(motions)}: every training motion of the template and the first "
+                            f"{METRIC_FIT_PERFORMERS - 1} training identities",
+        "candidates": {"grid": "MOTION_WEIGHTS, chosen on a grid with bench.human_metric (decision 101)"}}
+    log(f"human: motion metric {fit.chosen} {tuple(round(w, 4) for w in fit.weights.as_tuple())}, held-out "
+        "frame error " + ", ".join(f"{k} {1e3 * v:.1f} mm" for k, v in fit.scores.items()))
+    return fit
+
+
+def motion_sequences(log=print, performers=METRIC_FIT_PERFORMERS):
+    """The training motions of the first ``performers`` performers, as ``generate`` bakes them (no postures,
+    no held-out data): -> {(performer, motion): (T, N, 3)}."""
+    human = Human(log)
+    train, _ = identities(model=human.model)
+    neutral = {k: np.array([0.5]) for k in human.model.phenotype_labels}
+    chosen = [neutral] + [_take(train, i) for i in range(performers - 1)]
+    return {(i, m): human.motion(p, m).astype(np.float32) for i, p in enumerate(chosen) for m in HUMAN_TRAIN_MOTIONS}
+
+
 def build(pose_components=POSE_COMPONENTS, shape_components=SHAPE_COMPONENTS, log=print, data=None,
           elastic_iter=30, distribution=True):
     """Generate the data and build the basis: -> (Basis, data)."""
@@ -629,8 +665,9 @@ def build(pose_components=POSE_COMPONENTS, shape_components=SHAPE_COMPONENTS, lo
                         scale=height, name=NAME, units="m", schedule=HUMAN_SCHEDULE, provenance=provenance,
                         landmarks=human_landmarks(template))
     basis.shape_weights = H2Weights(*SHAPE_WEIGHTS)
-    basis.provenance["metrics"] = ("metric: motion paths (chosen with bench.human_metric on training motions); "
-                                   "shape_metric: registration and random bodies (the paper's body weights)")
+    log("human: fitting the motion metric")
+    fit_motion_metric(basis, data["sequences"], log)
+    basis.provenance["metrics"] = METRICS_NOTE
     basis.provenance["landmarks"] = LANDMARK_NOTES[NAME]
     basis.provenance["groups"]["shape"]["construction"] = "elastic H2 geodesics template -> identity (3 meshes)"
     if human is not None:

@@ -212,6 +212,9 @@ def cmd_extrapolate(args):
     if motion.shooting.speed_relaxed and not args.json:
         refined["speed varied at frames"] = ",".join(str(k) for k in motion.shooting.speed_relaxed) + \
             " (the body passes a creased, almost flat joint there; kept at the finest step)"
+    if motion.shooting.frozen and not args.json:
+        refined["continued at frames"] = ",".join(str(k) for k in motion.shooting.frozen) + \
+            " (no geodesic step converged there: finished in the metric of its last point)"
     _print({"frames": len(motion.path), "seconds": time.perf_counter() - start, "output": str(args.output),
             **refined, **_detail_report(motion.ends, motion.detail)}, args.json,
            "geodesic extrapolation (frames 0 and 1 are the inputs)")

@@ -31,11 +31,13 @@ FIT_FRAMES = 120
 #: Groups the interior frames are held out in, and held-out frames predicted per group.
 FOLDS = 5
 SCORE_FRAMES = 8
-#: The presets a fit competes with.
+#: The presets a fit competes with (by default) and starts from.
 CANDIDATES = ("body", "face")
 #: Time points of the geodesics that predict a held-out frame (its middle point is the prediction): the
 #: fit's two-step geodesic.
 SCORE_STEPS = 3
+#: Ridge of the Gauss-Newton blocks, relative to their mean eigenvalue.
+RIDGE = 1e-12
 #: Bounds of the log weights relative to a0 = 1 (the metric's scale does not change its geodesics).
 LOG_BOUND = 25.0
 
@@ -120,8 +122,11 @@ class _LocalTerms:
         pace left out, in vertex units (M^1/2 delta, flattened) over sqrt(frames)."""
         r, h, v = self.r[keep], self.h[keep], self.v[keep]
         g = np.einsum("j,kjp->kp", w, r)
-        # (pseudo-inverse: groups may share directions, making the blocks singular)
-        delta = (np.linalg.pinv(np.einsum("j,kjpq->kpq", w, h), hermitian=True) @ g[..., None])[..., 0]
+        hess = np.einsum("j,kjpq->kpq", w, h)
+        # a relative ridge: groups may share directions, making the blocks singular (the gradient has no part
+        # along such a direction, and M measures none)
+        ridge = RIDGE * np.trace(hess, axis1=1, axis2=2) / hess.shape[1]
+        delta = np.linalg.solve(hess + ridge[:, None, None] * np.eye(hess.shape[1]), g[..., None])[..., 0]
         mv = v @ self.gram
         delta = delta - ((delta * mv).sum(1) / np.maximum((v * mv).sum(1), 1e-300))[:, None] * v
         return (delta @ self.root).ravel() / np.sqrt(len(delta))
@@ -159,12 +164,14 @@ def held_out_errors(basis, codes, frames, pairs, weights):
     return np.array(out)
 
 
-def choose_motion_metric(basis, sequences, folds=FOLDS, callback=None, cancel=None):
+def choose_motion_metric(basis, sequences, candidates=None, folds=FOLDS, callback=None, cancel=None):
     """The motion metric for a basis from its training sequences (list of (T_i, N, 3), at least two
     with three frames or more): interior frames are held out in ``folds`` groups; the weights fitted
-    without a group (no prediction that uses one of its frames) and the presets predict the group's
-    frames from their neighbours; the candidate with the lowest mean error is kept, the fit refitted on
-    every frame -> MetricFit."""
+    without a group (no prediction that uses one of its frames) and the ``candidates`` ({label: weights},
+    default the presets) predict the group's frames from their neighbours; the one with the lowest mean
+    error is kept, the fit refitted on every frame -> MetricFit."""
+    candidates = {name: PRESETS[name] for name in CANDIDATES} if candidates is None else {
+        label: H2Weights.parse(w) for label, w in candidates.items()}
     monitor = Monitor("metric fit", callback, cancel)
     frames = [np.asarray(s, dtype=np.float64) for s in sequences if len(s) >= 3]
     if len(frames) < 2:
@@ -174,7 +181,7 @@ def choose_motion_metric(basis, sequences, folds=FOLDS, callback=None, cancel=No
     pairs = _interior(codes, FIT_FRAMES)
     terms = _LocalTerms(basis, codes, pairs, Monitor("metric fit", monitor.scaled(0.0, 0.3), cancel))
     folds = max(2, min(folds, len(pairs)))
-    scores = {name: [] for name in ("fit", *CANDIDATES)}
+    scores = {name: [] for name in ("fit", *candidates)}
     for fold in range(folds):
         held = pairs[fold::folds][:SCORE_FRAMES]
         near = {(i, k + d) for i, k in held for d in (-1, 0, 1)}
@@ -182,7 +189,7 @@ def choose_motion_metric(basis, sequences, folds=FOLDS, callback=None, cancel=No
         if not keep.any():
             continue
         fitted = terms.fit(keep)
-        for name, w in (("fit", fitted), *((c, PRESETS[c]) for c in CANDIDATES)):
+        for name, w in (("fit", fitted), *candidates.items()):
             scores[name].extend(held_out_errors(basis, codes, frames, held, w))
             monitor.check()
         monitor.report(0.3 + 0.65 * (fold + 1) / folds, f"metric fit: held-out frames {fold + 1} of {folds}")
@@ -190,5 +197,5 @@ def choose_motion_metric(basis, sequences, folds=FOLDS, callback=None, cancel=No
     fitted = terms.fit()
     chosen = min(means, key=means.get) if means else "fit"
     monitor.report(1.0, "metric fit done")
-    return MetricFit(weights=fitted if chosen == "fit" else PRESETS[chosen], chosen=chosen, scores=means,
+    return MetricFit(weights=fitted if chosen == "fit" else candidates[chosen], chosen=chosen, scores=means,
                      fitted=fitted, sequences=len(frames), frames=len(pairs))

@@ -317,7 +317,8 @@ class ShootingReport:
     the largest remaining correction accepted (relative to its step length, metric norm), the largest
     relative change of metric speed between two consecutive steps, and the energy gradients and metric
     matrices it took; speed_relaxed the frames where a step solved at the finest refinement was kept
-    although it changed the metric speed by more than ``SPEED_TOL``."""
+    although it changed the metric speed by more than ``SPEED_TOL``; frozen the frames finished in the
+    metric frozen at their last point, where no step converged even at the finest refinement."""
 
     substeps: list
     refinements: int
@@ -326,18 +327,21 @@ class ShootingReport:
     n_grad: int
     n_metric: int
     speed_relaxed: list = field(default_factory=list)
+    frozen: list = field(default_factory=list)
 
     def to_json(self):
         """JSON-ready dict of the report."""
         return {"substeps": [int(k) for k in self.substeps], "refinements": int(self.refinements),
                 "max_correction": float(self.max_correction),
                 "max_speed_change": float(self.max_speed_change), "energy_gradients": int(self.n_grad),
-                "metric_matrices": int(self.n_metric), "speed_relaxed": [int(k) for k in self.speed_relaxed]}
+                "metric_matrices": int(self.n_metric), "speed_relaxed": [int(k) for k in self.speed_relaxed],
+                "frozen": [int(k) for k in self.frozen]}
 
 
-def _march(stepper, start, n_frames, substeps, midpoint, monitor, max_substeps, speed_tol, frame_check=None):
+def _march(stepper, start, n_frames, substeps, midpoint, monitor, max_substeps, speed_tol, frame_check=None,
+           frozen=False):
     """Continue the discrete geodesic through start = (prev, cur), 1/substeps of a frame apart, by n_frames
-    frames: -> (frames (n_frames, P), ShootingReport). frame_check: see ``extrapolate``.
+    frames: -> (frames (n_frames, P), ShootingReport). frame_check, frozen: see ``extrapolate``.
 
     A step is refused when it does not converge or when it changes the metric speed by more than
     ``speed_tol`` (a geodesic keeps its speed: a jump means the step is too long for the curvature,
@@ -347,10 +351,12 @@ def _march(stepper, start, n_frames, substeps, midpoint, monitor, max_substeps, 
     whose equation was solved is kept even when it changes the speed (recorded in ``speed_relaxed``):
     near a joint creased almost flat the speed change at the finest refinement is noise from step to step,
     not a step too long (docs/decisions/013-shooting-tolerance-and-step-refinement.md);
-    only a step that does not converge there fails.
+    only a step that does not converge there fails, or, with ``frozen``, finishes its frame as the
+    geodesic of the metric frozen at the last point does (a straight latent step at the last velocity),
+    after which the next frame is shot again from the frame spacing (``ShootingReport.frozen``).
     """
     history, level, c = list(start), substeps, None
-    frames, per_frame, refinements, worst, fastest, relaxed = [], [], 0, 0.0, 0.0, []
+    frames, per_frame, refinements, worst, fastest, relaxed, held = [], [], 0, 0.0, 0.0, [], []
     for k in range(n_frames):
         remaining = level
         while remaining:
@@ -371,6 +377,14 @@ def _march(stepper, start, n_frames, substeps, midpoint, monitor, max_substeps, 
                 history.append(x)
                 remaining -= 1
                 continue
+            if 2 * level > max_substeps and frozen:
+                velocity = history[-1] - history[-2]
+                end = history[-1] + remaining * velocity
+                history, c, remaining = [end - velocity * (level / substeps), end], None, 0
+                level = substeps
+                held.append(k + 1)
+                monitor.report(k / n_frames, f"frame {k + 1}/{n_frames}: continued in the metric frozen there")
+                continue
             if 2 * level > max_substeps:
                 fewer = f"ask for at most {k} frame{'s' if k > 1 else ''} or " if k else ""
                 raise ShootingFailed(f"frame {k + 1} of {n_frames}: {problem} even at 1/{level} of the frame step; "
@@ -387,14 +401,14 @@ def _march(stepper, start, n_frames, substeps, midpoint, monitor, max_substeps, 
         frames.append(history[-1])
         per_frame.append(level)
         monitor.report((k + 1) / n_frames, f"frame {k + 1}/{n_frames}" + (f" (1/{level} steps)" if level > 1 else ""))
-    report = ShootingReport(per_frame, refinements, worst, fastest, stepper.n_grad, stepper.n_metric, relaxed)
+    report = ShootingReport(per_frame, refinements, worst, fastest, stepper.n_grad, stepper.n_metric, relaxed, held)
     return np.array(frames).reshape(n_frames, -1), report
 
 
 @with_one_blas_thread
 def extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new, callback=None, cancel=None,
                 tol=STEP_TOL, substeps=1, anchor=False, accept_tol=ACCEPT_TOL, max_substeps=MAX_SUBSTEPS,
-                speed_tol=SPEED_TOL, with_report=False, frame_check=None):
+                speed_tol=SPEED_TOL, with_report=False, frame_check=None, frozen=False):
     """Continue the discrete geodesic through alpha^0, alpha^1 by n_new steps: -> (n_new + 2, P)
     (and a ShootingReport when ``with_report``).
 
@@ -411,7 +425,10 @@ def extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new, callbac
     where the straight latent line alpha^0 + k (alpha^1 - alpha^0) puts it (``geodesics.anchor_path``;
     the predicted frames only). frame_check: code (P,) -> None, or why a new frame is refused: the shot
     stops there with FrameRejected (naming the frame), so that a caller that would discard the whole
-    path does not pay for the rest of it (``workflows.sample_bodies``: a joint creased flat).
+    path does not pay for the rest of it (``workflows.sample_bodies``: a joint creased flat). frozen: where no
+    step converges even at the finest refinement, finish that frame in the metric frozen at its last point
+    (the geodesic of a constant metric: a straight latent step at the last velocity) and shoot on from the
+    frame after it (``ShootingReport.frozen`` names those frames) instead of failing.
     """
     p = fields.shape[0]
     try:
@@ -437,7 +454,7 @@ def extrapolate(template, faces, fields, alpha0, alpha1, weights, n_new, callbac
         start = tuple(geodesic(template, faces, fields, *start, weights, steps=substeps + 1, cancel=cancel).path[-2:])
         start = (start[0], codes["alpha1"])
     new, report = _march(stepper, start, n_new, substeps, midpoint, monitor, max(max_substeps, substeps), speed_tol,
-                         frame_check)
+                         frame_check, frozen)
     monitor.report(1.0, "done")
     out = np.concatenate([np.stack([codes["alpha0"], codes["alpha1"]]), new])
     if anchor:

@@ -151,6 +151,31 @@ def test_build_basis_then_distance_and_interpolate_on_registered_meshes(capsys, 
     assert np.allclose(codes[-1], project_to_basis(basis, load_mesh(end)[0])[0])
 
 
+def test_build_basis_fits_the_motion_metric_by_default_when_a_group_has_two_sequences(capsys, sequences):
+    from bareesa.basis_io import load_basis
+
+    tmp, v, f, seqs = sequences
+    two = ["--sequence", "pose:" + ",".join(map(str, seqs["bend"])),
+           "--sequence", "pose:" + ",".join(map(str, seqs["twist"]))]
+    rc, text, err = run(capsys, "build-basis", tmp / "template.ply", *two, "-o", tmp / "fit.npz")
+    assert rc == 0, err
+    basis = load_basis(tmp / "fit.npz")
+    fit = basis.provenance["metric_fit"]
+    assert set(fit["held_out_frame_error"]) == {"fit", "body", "face"}
+    assert min(fit["held_out_frame_error"], key=fit["held_out_frame_error"].get) == fit["chosen"]
+    assert list(basis.weights.as_tuple()) == fit["weights"] and basis.shape_metric == h2_metric.PRESETS["body"]
+    assert f"({fit['chosen']}; held-out frame error" in text
+    # one sequence per group: nothing to hold out, the paper's weights
+    rc, text, err = run(capsys, "build-basis", tmp / "template.ply", two[0], two[1], "-o", tmp / "one.npz")
+    assert rc == 0, err
+    one = load_basis(tmp / "one.npz")
+    assert one.weights == h2_metric.PRESETS["body"] and "metric_fit" not in one.provenance
+    # asking for a fit that cannot be made says why, and writes nothing
+    rc, _, err = run(capsys, "build-basis", tmp / "template.ply", two[0], two[1], "--metric", "fit",
+                     "-o", tmp / "none.npz")
+    assert rc == 2 and "needs at least two training sequences" in err and not (tmp / "none.npz").exists()
+
+
 def test_build_basis_rejects_unregistered_frames(capsys, sequences, tmp_path):
     tmp, v, f, seqs = sequences
     s, sf = synthetic.blob_mesh(1)

@@ -272,3 +272,24 @@ def test_a_frame_refused_by_the_frame_check_stops_the_shot_there_and_names_it():
     # a check that refuses nothing changes nothing
     kept = shooting.shoot(t, f, h, np.zeros(4), velocity, b.weights, steps=6, frame_check=lambda code: None)
     assert np.array_equal(kept, plain)
+
+
+def test_a_frame_no_step_reaches_is_finished_in_the_frozen_metric_and_shooting_resumes_after_it():
+    b = small_basis()
+    t, f, h = b.tensors()
+    a0, a1 = np.zeros(4), 0.6 * np.array([1.5, -1.0, 0.8, 1.2])  # one step per frame reaches frame 1, not 2
+    with pytest.raises(shooting.ShootingFailed, match="frame 2 of 3"):
+        shooting.extrapolate(t, f, h, a0, a1, b.weights, 3, max_substeps=1)
+    path, report = shooting.extrapolate(t, f, h, a0, a1, b.weights, 5, max_substeps=1, with_report=True,
+                                        frozen=True)
+    assert report.frozen[0] == 2 and 4 not in report.frozen and report.to_json()["frozen"] == report.frozen
+    exact = shooting.extrapolate(t, f, h, a0, a1, b.weights, 1, max_substeps=1)
+    assert np.allclose(path[:3], exact, rtol=0, atol=1e-12)  # frames before it are the exact shot's
+    # a frozen frame is the straight step at the last velocity (the geodesic of a constant metric) ...
+    for k in report.frozen:
+        assert np.allclose(path[k + 1], 2 * path[k] - path[k - 1], rtol=0, atol=1e-12)
+    # ... and frame 4, which a step reaches, is shot exactly from the two frames before it
+    step = shooting.geodesic_step(t, f, h, path[3], path[4], b.weights)
+    assert np.allclose(path[5], step, rtol=0, atol=1e-6 * np.abs(step).max())
+    # with refinement allowed the motion needs no freezing at all
+    assert shooting.extrapolate(t, f, h, a0, a1, b.weights, 5, with_report=True, frozen=True)[1].frozen == []

@@ -242,6 +242,34 @@ def test_an_extrapolation_that_fails_past_a_creased_frame_names_that_frame(spher
     assert len(seen) == 2 and np.allclose(seen[0], basis.template + np.tensordot(err.value.frames[0], basis.fields, 1))
 
 
+def test_an_extrapolation_continued_in_the_frozen_metric_finishes_unless_it_creases_a_joint(sphere, monkeypatch):
+    basis, _ = sphere
+    real_shoot, real_creased = shooting.extrapolate, workflows.creased
+    asked = {}
+
+    def frozen_at_2(*args, **kwargs):  # the real shot, reported as frozen from frame 2 on
+        asked.update(kwargs)
+        path, report = real_shoot(*args, **kwargs)
+        report.frozen = [2, 3]
+        return path, report
+
+    monkeypatch.setattr(shooting, "extrapolate", frozen_at_2)
+    motion = workflows.extrapolate(basis, workflows.KnownCode(A), workflows.KnownCode(B), 4)
+    assert asked["frozen"] is True and motion.shooting.frozen == [2, 3] and motion.path.shape == (6, 4)
+    seen = []
+
+    def creased(template, faces, verts, **kwargs):  # the second frame checked (frame 3) is creased
+        seen.append(verts)
+        return len(seen) == 2 or real_creased(template, faces, verts, **kwargs)
+
+    monkeypatch.setattr(workflows, "creased", creased)
+    with pytest.raises(shooting.ShootingFailed, match=r"^frame 3 of 4: no geodesic step converged from frame 2 on "
+                                                      r".*left the bodies the basis can make") as err:
+        workflows.extrapolate(basis, workflows.KnownCode(A), workflows.KnownCode(B), 4)
+    assert np.allclose(seen[0], basis.template + np.tensordot(motion.path[3], basis.fields, 1))
+    assert np.allclose(err.value.frames, motion.path[2:3])  # frame 1, reached before the frozen ones
+
+
 def test_a_random_body_whose_faces_cross_is_replaced_and_counted(sphere, monkeypatch):
     from bareesa.mesh import self_intersections
 
