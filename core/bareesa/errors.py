@@ -32,7 +32,11 @@ class ShootingFailed(BareEsaError):
 
 class FrameRejected(BareEsaError):
     """A frame of a shot was refused by the caller's check (``shooting.extrapolate(frame_check=)``); the
-    shot stops there."""
+    shot stops there; ``frames`` the codes (K, P) of the frames before it (or None)."""
+
+    def __init__(self, message, frames=None):
+        super().__init__(message)
+        self.frames = frames
 
 
 class WorkersUnavailable(BareEsaError):

@@ -397,7 +397,7 @@ def _march(stepper, start, n_frames, substeps, midpoint, monitor, max_substeps, 
         history = history[-3:]
         reason = None if frame_check is None else frame_check(history[-1])
         if reason:
-            raise FrameRejected(f"frame {k + 1} of {n_frames}: {reason}")
+            raise FrameRejected(f"frame {k + 1} of {n_frames}: {reason}", frames=np.array(frames).reshape(k, stepper.p))
         frames.append(history[-1])
         per_frame.append(level)
         monitor.report((k + 1) / n_frames, f"frame {k + 1}/{n_frames}" + (f" (1/{level} steps)" if level > 1 else ""))

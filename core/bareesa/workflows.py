@@ -294,33 +294,42 @@ def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=
     anchor is False), with the off-basis detail continued as the latent line is: -> Continuation.
 
     Where no step converges even at the finest refinement, the frame is finished in the metric frozen there
-    (``shooting.extrapolate(frozen=True)``; ``Continuation.shooting.frozen`` names those frames); the motion
-    fails only when a frame from there on creases a joint flat that the inputs did not."""
+    (``shooting.extrapolate(frozen=True)``; ``Continuation.shooting.frozen`` names those frames). The motion
+    stops with ShootingFailed (naming the frame, carrying the frames before it) at the first frame that
+    creases a joint flat that the inputs did not: it has left the bodies the basis can make."""
     monitor = Monitor("extrapolate", callback, cancel)
     lo = _scan_share((a, b))
     ends = tuple(codes_of(basis, [a, b], options, monitor.scaled(0.0, lo), cancel))
     inputs = [end.code for end in ends]
+    reference = input_quality(basis, inputs)
+
+    def check(code):
+        body = basis.template + np.tensordot(code, basis.fields, axes=1)
+        return CREASED_MOTION if creased(basis.template, basis.faces, body, reference=reference) else None
+
     template, faces, fields = options.tensors(basis)
     try:
         path, report = shooting.extrapolate(template, faces, fields, ends[0].code, ends[1].code,
                                             options.metric(basis), n_new, callback=monitor.scaled(lo, 1.0),
-                                            cancel=cancel, anchor=anchor, with_report=True, frozen=True)
+                                            cancel=cancel, anchor=anchor, with_report=True, frozen=True,
+                                            frame_check=check)
+    except FrameRejected as err:
+        k = len(err.frames)
+        fewer = f"ask for at most {k} frame{'s' if k > 1 else ''}" if k else "the inputs' own step already does"
+        raise shooting.ShootingFailed(f"{err}; {fewer}", frames=err.frames) from None
     except shooting.ShootingFailed as err:
         first = first_creased(basis, err.frames, inputs)
         if first is None:
             raise
         raise shooting.ShootingFailed(f"{err}; frame {first} already creases a joint flat that the inputs did not: "
                                       "the motion has left the bodies the basis can make", frames=err.frames) from None
-    if report.frozen:
-        since = report.frozen[0]
-        first = first_creased(basis, path[1 + since:], inputs)
-        if first is not None:
-            raise shooting.ShootingFailed(
-                f"frame {since + first - 1} of {n_new}: no geodesic step converged from frame {since} on and the "
-                "motion continued there creases a joint flat that the inputs did not: the motion has left the "
-                "bodies the basis can make; ask for fewer frames", frames=path[2:1 + since])
     return Continuation(ends=ends, path=path, detail=_detail_along(ends, np.arange(len(path)), keep_detail),
                         shooting=report)
+
+
+#: Why an extrapolated frame is refused (``extrapolate``).
+CREASED_MOTION = ("it creases a joint flat that the inputs did not: the motion has left the bodies the basis "
+                  "can make")
 
 
 def distances(basis, items, options=Options(), callback=None, cancel=None):
