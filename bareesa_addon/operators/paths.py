@@ -183,6 +183,11 @@ class BAREESA_OT_extrapolate(SolveOperator, bpy.types.Operator):
                 self.report({"WARNING"}, f"the motion's speed varied at new frame{'s' * (len(relaxed) > 1)} "
                                          f"{', '.join(map(str, relaxed))}: the body passes a creased, almost flat "
                                          "joint there (kept at the finest time step)")
+            frozen = motion.shooting.frozen if motion.shooting is not None else []
+            if frozen:
+                self.report({"WARNING"}, f"no geodesic step converged at new frame{'s' * (len(frozen) > 1)} "
+                                         f"{', '.join(map(str, frozen))}: continued there in the metric of the frame "
+                                         "before")
             note = ""
             if target_name is None:
                 times = np.arange(len(path), dtype=np.float64)  # extrapolate's: the inputs at 0 and 1

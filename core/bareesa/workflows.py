@@ -305,7 +305,8 @@ def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=
 
     def check(code):
         body = basis.template + np.tensordot(code, basis.fields, axes=1)
-        return CREASED_MOTION if creased(basis.template, basis.faces, body, reference=reference) else None
+        return CREASED_MOTION if creased(basis.template, basis.faces, body, floor=MOTION_CREASE_QUALITY,
+                                         reference=reference) else None
 
     template, faces, fields = options.tensors(basis)
     try:
@@ -315,10 +316,10 @@ def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=
                                             frame_check=check)
     except FrameRejected as err:
         k = len(err.frames)
-        fewer = f"ask for at most {k} frame{'s' if k > 1 else ''}" if k else "the inputs' own step already does"
+        fewer = f"ask for at most {k} frame{'s' if k > 1 else ''}" if k else "start from closer inputs"
         raise shooting.ShootingFailed(f"{err}; {fewer}", frames=err.frames) from None
     except shooting.ShootingFailed as err:
-        first = first_creased(basis, err.frames, inputs)
+        first = first_creased(basis, err.frames, inputs, floor=MOTION_CREASE_QUALITY)
         if first is None:
             raise
         raise shooting.ShootingFailed(f"{err}; frame {first} already creases a joint flat that the inputs did not: "
@@ -330,6 +331,12 @@ def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=
 #: Why an extrapolated frame is refused (``extrapolate``).
 CREASED_MOTION = ("it creases a joint flat that the inputs did not: the motion has left the bodies the basis "
                   "can make")
+#: An extrapolated frame is refused when one of its triangles keeps less than this share of its quality in the
+#: inputs (``input_quality``): a triangle collapsed. Real motions go far lower than random bodies' CREASE_QUALITY:
+#: held-out ``human`` people in a lunge reach 0.046 of their inputs' quality at full flexion (the true frames'
+#: codes), while shots that left the basis' bodies reached 0.001 and below
+#: (docs/decisions/023-motion-metric-fit.md).
+MOTION_CREASE_QUALITY = 0.01
 
 
 def distances(basis, items, options=Options(), callback=None, cancel=None):
@@ -412,16 +419,16 @@ def input_quality(basis, codes):
     return quality
 
 
-def first_creased(basis, codes, inputs=None):
-    """The number (1-based) of the first of codes (K, P) whose body is ``creased``, or None (also for
-    codes None); inputs (J, P): the motion's input codes, judged against (a registered person's triangles
+def first_creased(basis, codes, inputs=None, floor=CREASE_QUALITY):
+    """The number (1-based) of the first of codes (K, P) whose body is ``creased`` (at ``floor``), or None (also
+    for codes None); inputs (J, P): the motion's input codes, judged against (a registered person's triangles
     may be thinner than the template's already: only what the motion creased counts), else the template."""
     if codes is None:
         return None
     reference = None if inputs is None else input_quality(basis, inputs)
     for k, code in enumerate(codes):
         if creased(basis.template, basis.faces, basis.template + np.tensordot(code, basis.fields, axes=1),
-                   reference=reference):
+                   floor=floor, reference=reference):
             return k + 1
     return None
 

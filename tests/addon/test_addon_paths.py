@@ -203,6 +203,26 @@ def test_extrapolate_keep_body_planted_reaches_core(scene, tiny, monkeypatch):
     assert seen == [True, False]
 
 
+def test_extrapolate_warns_of_frames_continued_in_the_frozen_metric(scene, tiny, monkeypatch, capfd):
+    import bareesa.shooting as shooting
+
+    real = shooting.extrapolate
+
+    def frozen_at_2(*args, **kwargs):  # the real shot, reported as continued in the frozen metric at frame 2
+        path, report = real(*args, **kwargs)
+        report.frozen = [2]
+        return path, report
+
+    monkeypatch.setattr(shooting, "extrapolate", frozen_at_2)
+    registered("A", 0.5 * A), registered("B", 0.5 * B)
+    scene.bareesa.extrapolate_steps = 2
+    capfd.readouterr()
+    assert bpy.ops.bareesa.extrapolate(source="OBJECTS", object_a="A", object_b="B") == {"FINISHED"}
+    out = capfd.readouterr().out
+    assert "no geodesic step converged at new frame 2: continued there in the metric" in out
+    assert len(keyed(bpy.data.objects["A_B_extrapolated"])[0]) == 4
+
+
 def test_extrapolate_keyframes_adds_keys_after_the_last_two(scene, tiny):
     from bareesa_addon import convert
     from bareesa.shooting import extrapolate

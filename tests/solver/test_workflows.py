@@ -304,6 +304,19 @@ def test_a_crease_is_judged_against_the_motions_inputs_not_the_template(sphere):
     tri = basis.faces[0]
     squashed[tri[2]] = squashed[tri[:2]].mean(0)  # one triangle flattened to a segment: creased whatever the inputs
     assert workflows.creased(basis.template, basis.faces, squashed, reference=reference)
+    assert workflows.creased(basis.template, basis.faces, squashed, floor=workflows.MOTION_CREASE_QUALITY,
+                             reference=reference)
+    # a motion's frame may thin a triangle far more than a random body may (a joint at full flexion) ...
+    thinned = basis.template.copy()
+    a, b, c = thinned[tri]
+    foot = a + np.dot(c - a, b - a) / np.dot(b - a, b - a) * (b - a)
+    own = triangle_quality(basis.template, basis.faces)[0]
+    for keep, refused in ((0.05, False), (0.002, True)):  # ... but not collapse it
+        thinned[tri[2]] = foot + keep * (c - foot)
+        ratio = triangle_quality(thinned, basis.faces)[0] / own
+        assert (ratio < workflows.MOTION_CREASE_QUALITY) == refused
+        assert workflows.creased(basis.template, basis.faces, thinned, floor=workflows.MOTION_CREASE_QUALITY) == refused
+        assert workflows.creased(basis.template, basis.faces, thinned)  # a random body that thin is refused
 
 
 def test_a_known_codes_detail_is_carried_along_a_path_and_a_continuation(sphere):
