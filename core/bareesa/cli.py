@@ -19,7 +19,7 @@ from . import __version__
 from .basis_building import build_basis, fits_metric
 from .basis_io import DEFAULT_BASIS, load_basis, save_basis
 from .cli_inputs import load_input, load_path, parse_components, parse_sequences, registration_overrides
-from .errors import BareEsaError, InputError
+from .errors import BareEsaError, InputError, ShootingFailed
 from .evaluation import mesh_metrics, vertex_error
 from .geodesics import decode_path
 from .h2_metric import H2Weights, path_energy
@@ -203,8 +203,16 @@ def cmd_extrapolate(args):
     start = time.perf_counter()
     options = _options(args)
     basis, a, b = _basis_and_pair(args, min_steps=1)
-    motion = extrapolate(basis, a, b, args.steps, options, anchor=not args.no_anchor,
-                         keep_detail=not args.no_detail)
+    try:
+        motion = extrapolate(basis, a, b, args.steps, options, anchor=not args.no_anchor,
+                             keep_detail=not args.no_detail)
+    except ShootingFailed as err:
+        reached = getattr(err, "reached", None)
+        if reached is None or len(reached.path) <= 2:
+            raise
+        _write_frames(args.output, basis, reached.path, detail=reached.detail)  # what was reached is kept
+        raise ShootingFailed(f"{err} (the inputs and the {len(reached.path) - 2} frames before it are written to "
+                             f"{args.output})", frames=err.frames) from None
     _write_frames(args.output, basis, motion.path, detail=motion.detail)
     # where a step did not converge, shooting refined time (shooting.ShootingReport): say where
     refined = {"shooting": motion.shooting.to_json()} if args.json else {

@@ -295,8 +295,8 @@ def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=
 
     Where no step converges even at the finest refinement, the frame is finished in the metric frozen there
     (``shooting.extrapolate(frozen=True)``; ``Continuation.shooting.frozen`` names those frames). The motion
-    stops with ShootingFailed (naming the frame, carrying the frames before it) at the first frame that
-    creases a joint flat that the inputs did not: it has left the bodies the basis can make."""
+    stops with ShootingFailed (naming the frame; ``reached``: the Continuation of the frames before it) at the
+    first frame that creases a joint flat that the inputs did not: it has left the bodies the basis can make."""
     monitor = Monitor("extrapolate", callback, cancel)
     lo = _scan_share((a, b))
     ends = tuple(codes_of(basis, [a, b], options, monitor.scaled(0.0, lo), cancel))
@@ -317,7 +317,14 @@ def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=
     except FrameRejected as err:
         k = len(err.frames)
         fewer = f"ask for at most {k} frame{'s' if k > 1 else ''}" if k else "start from closer inputs"
-        raise shooting.ShootingFailed(f"{err}; {fewer}", frames=err.frames) from None
+        failed = shooting.ShootingFailed(f"{err}; {fewer}", frames=err.frames)
+        # the frames before it, as asking for k frames would give them (``Continuation``; nothing is lost)
+        path = np.concatenate([np.stack(inputs), err.frames])
+        if anchor:
+            path = shooting.anchor_extrapolation(template, fields, path)
+        failed.reached = Continuation(ends=ends, path=path, shooting=None,
+                                      detail=_detail_along(ends, np.arange(len(path)), keep_detail))
+        raise failed from None
     except shooting.ShootingFailed as err:
         first = first_creased(basis, err.frames, inputs, floor=MOTION_CREASE_QUALITY)
         if first is None:

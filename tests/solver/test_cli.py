@@ -244,6 +244,33 @@ def test_extrapolate_and_transfer_on_registered_meshes(capsys, built):
         assert np.allclose(moved[k, basis.group_slice("pose")], pose[basis.group_slice("pose")])
 
 
+def test_an_extrapolation_stopped_at_a_creased_frame_keeps_the_frames_before_it(capsys, built, monkeypatch):
+    from bareesa import workflows
+
+    tmp, out, seqs = built
+    ends = [seqs["bend"][0], seqs["bend"][1], "--basis", out]
+    rc, _, err = run(capsys, "extrapolate", *ends, "--steps", "4", "-o", tmp / "all")
+    assert rc == 0, err
+    real, seen = workflows.creased, []
+
+    def creased(template, faces, verts, **kwargs):  # the third new frame creases a joint
+        seen.append(verts)
+        return len(seen) == 3 or real(template, faces, verts, **kwargs)
+
+    monkeypatch.setattr(workflows, "creased", creased)
+    rc, _, err = run(capsys, "extrapolate", *ends, "--steps", "4", "-o", tmp / "part")
+    assert rc == 2 and "frame 3 of 4" in err and "ask for at most 2 frames" in err
+    assert f"the inputs and the 2 frames before it are written to {tmp / 'part'}" in err
+    assert np.allclose(np.load(tmp / "part" / "codes.npy"), np.load(tmp / "all" / "codes.npy")[:4], atol=1e-9)
+    written = sorted(p.name for p in (tmp / "part").glob("*.ply"))
+    assert len(written) == 4 and written == sorted(p.name for p in (tmp / "all").glob("*.ply"))[:4]
+    # a first frame already refused leaves nothing to keep: no folder is written
+    seen.clear()
+    monkeypatch.setattr(workflows, "creased", lambda *a, **k: True)
+    rc, _, err = run(capsys, "extrapolate", *ends, "--steps", "4", "-o", tmp / "none")
+    assert rc == 2 and "frame 1 of 4" in err and "start from closer inputs" in err and not (tmp / "none").exists()
+
+
 def test_interpolate_and_extrapolate_keep_the_inputs_off_basis_detail(capsys, built):
     from bareesa.basis_io import load_basis
     from bareesa.mesh import load_mesh
@@ -389,7 +416,9 @@ def test_demo_registers_two_simulated_scans_and_writes_an_evenly_paced_geodesic(
     assert rc == 2 and "--steps" in err and not (tmp_path / "d2").exists()
 
 
-def test_extrapolate_that_cannot_be_shot_names_the_frame_and_writes_nothing(capsys, built):
+def test_extrapolate_that_cannot_be_shot_names_the_frame_and_keeps_only_the_frames_before_it(capsys, built):
+    import re
+
     from bareesa.mesh import load_mesh
 
     tmp, out, seqs = built
@@ -399,7 +428,10 @@ def test_extrapolate_that_cannot_be_shot_names_the_frame_and_writes_nothing(caps
     rc, _, err = run(capsys, "extrapolate", seqs["bend"][0], far, "--basis", out, "--steps", "6",
                      "-o", tmp / "refused")
     assert rc == 2 and " of 6: " in err and "frame" in err and len(err.strip().splitlines()) == 1, err
-    assert not (tmp / "refused").exists()
+    frame = int(re.search(r"frame (\d+) of 6", err).group(1))
+    written = sorted((tmp / "refused").glob("*.ply")) if (tmp / "refused").exists() else []
+    # the inputs and the frames before the refused one, or nothing when the first is refused
+    assert len(written) == (frame + 1 if frame > 1 else 0), err
 
 
 @pytest.mark.parametrize("device, message", [("cuda:99", "cuda:99"), ("tpu", "'tpu'")])
