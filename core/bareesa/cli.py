@@ -207,7 +207,7 @@ def cmd_extrapolate(args):
         motion = extrapolate(basis, a, b, args.steps, options, anchor=not args.no_anchor,
                              keep_detail=not args.no_detail)
     except ShootingFailed as err:
-        reached = getattr(err, "reached", None)
+        reached = err.reached
         if reached is None or len(reached.path) <= 2:
             raise
         _write_frames(args.output, basis, reached.path, detail=reached.detail)  # what was reached is kept

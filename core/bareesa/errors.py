@@ -23,11 +23,13 @@ class SolveDiverged(BareEsaError):
 
 class ShootingFailed(BareEsaError):
     """A step of the initial value problem did not converge or produced non-finite values; ``frames``
-    the codes (K, P) of the frames reached before it, when the shot got that far (else None)."""
+    the codes (K, P) of the frames reached before it, when the shot got that far (else None); ``reached``
+    what a workflow made of them (``workflows.extrapolate``: a Continuation), else None."""
 
     def __init__(self, message, frames=None):
         super().__init__(message)
         self.frames = frames
+        self.reached = None
 
 
 class FrameRejected(BareEsaError):
