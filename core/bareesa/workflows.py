@@ -308,6 +308,10 @@ def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=
         return CREASED_MOTION if creased(basis.template, basis.faces, body, floor=MOTION_CREASE_QUALITY,
                                          reference=reference) else None
 
+    def continuation(path, report=None):  # the frames, their detail continued as the latent line is
+        return Continuation(ends=ends, path=path, detail=_detail_along(ends, np.arange(len(path)), keep_detail),
+                            shooting=report)
+
     template, faces, fields = options.tensors(basis)
     try:
         path, report = shooting.extrapolate(template, faces, fields, ends[0].code, ends[1].code,
@@ -322,8 +326,7 @@ def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=
         path = np.concatenate([np.stack(inputs), err.frames])
         if anchor:
             path = shooting.anchor_extrapolation(template, fields, path)
-        failed.reached = Continuation(ends=ends, path=path, shooting=None,
-                                      detail=_detail_along(ends, np.arange(len(path)), keep_detail))
+        failed.reached = continuation(path)
         raise failed from None
     except shooting.ShootingFailed as err:
         first = first_creased(basis, err.frames, inputs, floor=MOTION_CREASE_QUALITY)
@@ -331,8 +334,7 @@ def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=
             raise
         raise shooting.ShootingFailed(f"{err}; frame {first} already creases a joint flat that the inputs did not: "
                                       "the motion has left the bodies the basis can make", frames=err.frames) from None
-    return Continuation(ends=ends, path=path, detail=_detail_along(ends, np.arange(len(path)), keep_detail),
-                        shooting=report)
+    return continuation(path, report)
 
 
 #: Why an extrapolated frame is refused (``extrapolate``).
