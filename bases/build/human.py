@@ -574,10 +574,8 @@ def generate(log=print, test=True, motion_identities=MOTION_IDENTITIES, n_train=
     train, test_ids = identities(n_train=n_train, model=human.model)
     rests = human.rest(train)
     log(f"human: {len(rests)} training identities ({time.perf_counter() - t0:.0f} s)")
-    neutral = {k: np.array([0.5]) for k in human.model.phenotype_labels}
-    performers = [neutral] + [_take(train, i) for i in range(motion_identities - 1)]
-    sequences = {(i, m): human.motion(p, m).astype(np.float32) for i, p in enumerate(performers)
-                 for m in HUMAN_TRAIN_MOTIONS}
+    performers = motion_performers(human, train, motion_identities)
+    sequences = training_motions(human, performers)
     log(f"human: baked {len(sequences)} training sequences ({time.perf_counter() - t0:.0f} s)")
     segments = human.segments()
     postures, bodies, dropped = [], [], 0
@@ -620,14 +618,24 @@ def fit_motion_metric(basis, sequences, log=print):
     return fit
 
 
+def motion_performers(human, train, count):
+    """Who performs the training motions: Anny's default body, then the first count - 1 training identities."""
+    neutral = {k: np.array([0.5]) for k in human.model.phenotype_labels}
+    return [neutral] + [_take(train, i) for i in range(count - 1)]
+
+
+def training_motions(human, performers):
+    """Every training motion of each performer: -> {(performer, motion): (T, N, 3) float32}."""
+    return {(i, m): human.motion(p, m).astype(np.float32) for i, p in enumerate(performers)
+            for m in HUMAN_TRAIN_MOTIONS}
+
+
 def motion_sequences(log=print, performers=METRIC_FIT_PERFORMERS):
     """The training motions of the first ``performers`` performers, as ``generate`` bakes them (no postures,
     no held-out data): -> {(performer, motion): (T, N, 3)}."""
     human = Human(log)
     train, _ = identities(model=human.model)
-    neutral = {k: np.array([0.5]) for k in human.model.phenotype_labels}
-    chosen = [neutral] + [_take(train, i) for i in range(performers - 1)]
-    return {(i, m): human.motion(p, m).astype(np.float32) for i, p in enumerate(chosen) for m in HUMAN_TRAIN_MOTIONS}
+    return training_motions(human, motion_performers(human, train, performers))
 
 
 def build(pose_components=POSE_COMPONENTS, shape_components=SHAPE_COMPONENTS, log=print, data=None,
