@@ -341,10 +341,8 @@ def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=
 CREASED_MOTION = ("it creases a joint flat that the inputs did not: the motion has left the bodies the basis "
                   "can make")
 #: An extrapolated frame is refused when one of its triangles keeps less than this share of its quality in the
-#: inputs (``input_quality``): a triangle collapsed. Real motions go far lower than random bodies' CREASE_QUALITY:
-#: held-out ``human`` people in a lunge reach 0.046 of their inputs' quality at full flexion (the true frames'
-#: codes), while shots that left the basis' bodies reached 0.001 and below
-#: (docs/decisions/023-motion-metric-fit.md).
+#: inputs (``input_quality``): a triangle collapsed. Real motions at full flexion go far below random bodies'
+#: CREASE_QUALITY; the measurements behind the value are in docs/decisions/023-motion-metric-fit.md.
 MOTION_CREASE_QUALITY = 0.01
 
 
