@@ -262,13 +262,15 @@ def latent_path_energy(template, faces, fields, path, weights, per_step=False):
 PROJECTION_RIDGE = 5e-3
 
 
-def project_to_basis(basis, verts, ridge=PROJECTION_RIDGE):
+def project_to_basis(basis, verts, ridge=PROJECTION_RIDGE, weights=None):
     """Code of a mesh already in template topology: F(alpha) ~ verts.
 
     verts (N, 3) -> (alpha (P,), rms vertex residual), or a batch (M, N, 3) -> ((M, P), (M,)).
     Minimises the area-weighted |F(alpha) - verts|^2 + ridge * s * alpha^T G-bar(0) alpha,
     s = tr(M) / tr(G-bar(0)) with M the fields' area-weighted Gram matrix (so ``ridge`` is
     relative and unit-free); ridge=0 is plain least squares, exact for meshes in the span of the basis.
+    G-bar(0) is the latent metric at the template in ``weights`` (default the basis' own: the metric the
+    code's motions are solved in).
     """
     verts = np.asarray(verts, dtype=np.float64)
     if verts.shape[-2:] != basis.template.shape or verts.ndim not in (2, 3):
@@ -284,7 +286,7 @@ def project_to_basis(basis, verts, ridge=PROJECTION_RIDGE):
     if ridge > 0:
         areas = geometry.vertex_areas(torch.from_numpy(basis.template), torch.from_numpy(basis.faces)).numpy()
         weighted = a * np.repeat(areas, 3)[:, None]
-        gram, metric = weighted.T @ a, basis.template_metric()
+        gram, metric = weighted.T @ a, basis.template_metric(weights)
         alpha = np.linalg.solve(gram + ridge * np.trace(gram) / np.trace(metric) * metric, weighted.T @ target)
     else:
         alpha, *_ = np.linalg.lstsq(a, target, rcond=None)

@@ -98,3 +98,28 @@ def test_a_scan_near_rest_skips_the_search_and_a_far_one_does_not(figure):
     far = posed(synthetic.figure_pose(FAR_POSE))
     fit = articulated.fit_pose(skeleton, with_library, far, basis.faces, [Similarity()], ArticulatedFit())
     assert fit is not None and np.linalg.norm(fit.posed - far, axis=1).mean() < 0.03
+
+
+def test_the_posed_start_is_projected_with_the_registrations_own_metric(figure, monkeypatch):
+    """The articulated fit's skinned template enters the latent space through a ridge in the metric the
+    latent levels' path energy uses (the registration's shape metric), not the basis' motion metric."""
+    basis, posed = figure
+    from bareesa.h2_metric import H2Weights
+    from bareesa.registration import multiscale
+
+    motion = H2Weights(1.0, 0.5, 5.0, 1.0, 0.1, 0.0)  # a motion metric unlike the shape metric
+    basis = dataclasses.replace(basis, weights=motion, shape_weights=H2Weights.parse(basis.weights))
+    seen = []
+    real = articulated.project_to_basis
+
+    def spy(b, verts, ridge, weights=None):
+        seen.append(weights)
+        return real(b, verts, ridge=ridge, weights=weights)
+
+    monkeypatch.setattr(articulated, "project_to_basis", spy)
+    scan = synthetic.remesh_same_surface(posed(synthetic.figure_pose(FAR_POSE)), basis.faces, seed=1)
+    config = registration.RegistrationConfig.from_basis(basis).with_overrides(
+        {"detail.enabled": False, "retry": False, "schedule": SCHEDULE[-1:]})
+    res = multiscale.register(basis, *scan, config)
+    assert res.articulated["score"] is not None
+    assert seen and all(w == config.shape_metric(basis) for w in seen) and seen[0] != motion

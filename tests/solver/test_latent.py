@@ -181,6 +181,20 @@ def test_projection_ridge_keeps_rough_tiny_directions_small_and_the_fit_close():
         project_to_basis(basis, exact, ridge=-1.0)
     with pytest.raises(InputError, match="NaN"):
         project_to_basis(basis, np.full_like(exact, np.nan))
+    # the ridge's metric: the basis' own by default, any weights when asked (a registration's shape metric)
+    from bareesa.geometry import vertex_areas
+    from bareesa.h2_metric import H2Weights
+
+    other = H2Weights(1.0, 1e3, 0.0, 1e2, 0.0, 1e-2)
+    area = vertex_areas(torch.as_tensor(basis.template), torch.as_tensor(basis.faces)).numpy()
+    a = basis.fields.reshape(7, -1).T
+    gram = (a * np.repeat(area, 3)[:, None]).T @ a
+    metric = basis.template_metric(other)
+    manual = np.linalg.solve(gram + 0.05 * np.trace(gram) / np.trace(metric) * metric,
+                             (a * np.repeat(area, 3)[:, None]).T @ (noisy - basis.template).ravel())
+    weighted, _ = project_to_basis(basis, noisy, ridge=0.05, weights=other)
+    assert np.allclose(weighted, manual) and not np.allclose(weighted, ridged, atol=1e-3)
+    assert np.allclose(project_to_basis(basis, noisy, ridge=0.05, weights=basis.weights)[0], ridged)
 
 
 def test_off_basis_detail_carried_along_reproduces_the_keyframes_and_the_vertex_blend():

@@ -444,12 +444,13 @@ def fit_pose(skeleton, basis, scan_verts, scan_faces, transforms, settings, face
 
 
 def articulated_start(basis, skeleton, scan_verts, scan_faces, transforms, settings, face_weights=None,
-                      monitor=None):
+                      monitor=None, metric=None):
     """The code (P,) and alignment a registration may start from after the articulated fit (``fit_pose``) from
     candidate alignments [Similarity], and the fit: -> (code, Similarity, PoseFit), or None when the scan is
-    near rest."""
+    near rest. metric: the H2 weights of the projection's ridge (``latent.project_to_basis``), the
+    registration's own (its path energy's); None: the basis' motion metric."""
     fit = fit_pose(skeleton, basis, scan_verts, scan_faces, transforms, settings, face_weights, monitor)
     if fit is None:
         return None
-    code = project_to_basis(basis, fit.posed, ridge=settings.projection_ridge)[0]
+    code = project_to_basis(basis, fit.posed, ridge=settings.projection_ridge, weights=metric)[0]
     return code, fit.transform, fit
