@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from bareesa import basis_building, basis_io, h2_metric, latent, statistics, synthetic
+from bareesa import basis_building, basis_io, geometry, h2_metric, latent, statistics, synthetic
 from bareesa.errors import InputError
 from tests.solver.support import small_basis
 
@@ -182,11 +182,8 @@ def test_projection_ridge_keeps_rough_tiny_directions_small_and_the_fit_close():
     with pytest.raises(InputError, match="NaN"):
         project_to_basis(basis, np.full_like(exact, np.nan))
     # the ridge's metric: the basis' own by default, any weights when asked (a registration's shape metric)
-    from bareesa.geometry import vertex_areas
-    from bareesa.h2_metric import H2Weights
-
-    other = H2Weights(1.0, 1e3, 0.0, 1e2, 0.0, 1e-2)
-    area = vertex_areas(torch.as_tensor(basis.template), torch.as_tensor(basis.faces)).numpy()
+    other = h2_metric.H2Weights(1.0, 1e3, 0.0, 1e2, 0.0, 1e-2)
+    area = geometry.vertex_areas(torch.as_tensor(basis.template), torch.as_tensor(basis.faces)).numpy()
     a = basis.fields.reshape(7, -1).T
     gram = (a * np.repeat(area, 3)[:, None]).T @ a
     metric = basis.template_metric(other)
