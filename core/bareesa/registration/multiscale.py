@@ -156,7 +156,7 @@ def register(basis, scan_verts, scan_faces, config=None, *, landmarks=None, scan
         t0 = time.perf_counter()
         tried = candidates[:config.articulated.alignments]
         found = articulated_start(basis, skeleton, sv, sf, [c.transform for c in tried], config.articulated, face_w,
-                                  monitor, metric=config.shape_metric(basis))
+                                  monitor, metric=problem.metric)
         articulated = {"score": None, "start": -1, "seconds": None}
         if found is not None:
             code, transform, pose = found
