@@ -98,7 +98,7 @@ def sparse_solver(matrix):
 
 @with_one_blas_thread
 def minimize_preconditioned(objective, x0, precondition, monitor=None, max_iter=100, progress=(0.0, 1.0), message="",
-                            ftol=1e-9, plateau=None, memory=10, probe=1e-3):
+                            ftol=1e-9, plateau=None, memory=10, probe=1e-3, start=None):
     """Minimise ``objective(x: torch float64 tensor) -> scalar tensor`` from x0 (n,) by L-BFGS whose initial
     inverse Hessian is ``precondition`` (y -> P^-1 y, P symmetric positive definite, e.g. ``sparse_solver``),
     scaled at each iteration by s^T y / y^T P^-1 y, with scipy's strong Wolfe line search.
@@ -106,7 +106,8 @@ def minimize_preconditioned(objective, x0, precondition, monitor=None, max_iter=
     For many variables coupled by a stiff regulariser (free vertex displacements under an H2 energy) whose
     Hessian P is known: plain L-BFGS needs hundreds of iterations there, this a few tens. The first pair (s, y)
     is a finite difference along P^-1 g of length ``probe`` x |x0| (or ``probe``), so the first step is already
-    scaled. Returns (x (n,), value, iterations); stops after max_iter iterations, when a step lowers the
+    scaled. start: (value, gradient (n,)) at x0 where the caller has them (not evaluated again). Returns
+    (x (n,), value, iterations); stops after max_iter iterations, when a step lowers the
     objective by less than ftol (relative), on plateau (window k, rtol r) like ``minimize_lbfgs``, or when the
     line search fails twice in a row. Cancellable through the monitor; SolveDiverged on a non-finite value.
     """
@@ -131,6 +132,8 @@ def minimize_preconditioned(objective, x0, precondition, monitor=None, max_iter=
         return cache[key]
 
     x = np.array(x0, dtype=np.float64)
+    if start is not None:
+        cache[x.tobytes()] = (float(start[0]), np.asarray(start[1], dtype=np.float64))
     value, grad = fun(x)
     pairs = deque(maxlen=memory)  # (s, y, 1 / s^T y, P^-1 y)
     direction = precondition(grad)

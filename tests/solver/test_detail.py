@@ -9,8 +9,8 @@ from scipy.spatial import cKDTree
 from bareesa import h2_metric, optimize, synthetic
 from bareesa.mesh import self_intersections
 from bareesa.registration import DetailFit, RegistrationResult, fit_detail, register
-from bareesa.registration.detail import (_crossing_vertices, bad_faces, fade, reached_faces, tangential_matrix,
-                                        vertex_normals)
+from bareesa.registration.detail import (_crossing_vertices, bad_faces, fade, reached_faces, scan_noise,
+                                        tangential_matrix, vertex_normals)
 
 #: settings of the detail layer at the scale of the unit-sphere test basis (the defaults are a human body's)
 SPHERE_DETAIL = {"sigmas": (0.05,), "weights": (1e3,)}
@@ -114,6 +114,56 @@ def test_preconditioned_lbfgs_solves_a_stiff_problem_in_few_iterations():
     _, _, plain = optimize.minimize_lbfgs(objective, np.zeros(n), max_iter=30, ftol=1e-14, gtol=1e-12)
     _, plain_value, _ = optimize.minimize_lbfgs(objective, np.zeros(n), max_iter=iterations, ftol=1e-14, gtol=1e-12)
     assert value < plain_value  # unpreconditioned L-BFGS is further from the minimum after as many iterations
+
+
+def test_a_solve_started_from_the_callers_value_does_not_evaluate_it_again():
+    n = 200
+    lap = scipy.sparse.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1])
+    stiff = (1e3 * lap @ lap + scipy.sparse.identity(n)).tocsr()
+    a, b = torch.as_tensor(stiff.toarray()), torch.as_tensor(np.random.default_rng(2).normal(size=n))
+    calls = []
+
+    def objective(x):
+        calls.append(x.detach().numpy().copy())
+        return 0.5 * x @ (a @ x) - b @ x + 1e-3 * (x ** 4).sum()
+
+    x0 = np.random.default_rng(3).normal(size=n)
+    xt = torch.from_numpy(x0.copy()).requires_grad_(True)
+    value = objective(xt)
+    start = (float(value.detach()), torch.autograd.grad(value, xt)[0].numpy())
+    solve = optimize.sparse_solver(stiff)
+    calls.clear()
+    x, found, _ = optimize.minimize_preconditioned(objective, x0, solve, max_iter=60, ftol=1e-14, start=start)
+    assert calls and not any(np.array_equal(c, x0) for c in calls)
+    calls.clear()
+    again, plain, _ = optimize.minimize_preconditioned(objective, x0, solve, max_iter=60, ftol=1e-14)
+    assert any(np.array_equal(c, x0) for c in calls)  # (without it, x0 is evaluated)
+    assert found == pytest.approx(plain, rel=1e-12) and np.allclose(x, again)
+
+
+def test_the_noise_estimate_finds_the_std_of_the_noise_and_almost_none_on_a_clean_surface():
+    for subdivisions in (4, 5):
+        points, _ = synthetic.resampled_sphere(subdivisions, seed=3)
+        assert scan_noise(points) < 1e-4
+        for sigma, seed in ((0.005, 0), (0.02, 1)):
+            noisy = points + np.random.default_rng(seed).normal(size=points.shape) * sigma
+            assert scan_noise(noisy) == pytest.approx(sigma, rel=0.15)
+
+
+def test_on_a_noisy_scan_the_layer_weighs_the_data_less_and_stays_near_the_true_surface(bumped):
+    basis, surface, alpha, fit = bumped["basis"], bumped["surface"], bumped["alpha"], bumped["fit"]
+    points, faces = synthetic.resampled_sphere(4, seed=3)
+    noisy = surface(points, alpha) + np.random.default_rng(0).normal(size=(len(points), 3)) * 0.02
+    truth = cKDTree(surface(synthetic.icosphere(5)[0], alpha)).query  # the basis fit is this surface already
+    off, on = ({**SPHERE_DETAIL, "noise_floor": floor} for floor in (None, DetailFit.noise_floor))
+    plain = fit_detail(fit, basis.faces, noisy, faces, DetailFit(**off), basis.shape_metric, basis.scale)
+    quiet = fit_detail(fit, basis.faces, noisy, faces, DetailFit(**on), basis.shape_metric, basis.scale)
+    assert plain.noise is None and quiet.noise == pytest.approx(0.02, rel=0.15)
+    assert plain.levels[0]["weight"] == SPHERE_DETAIL["weights"][0] > 100 * quiet.levels[0]["weight"]
+    assert truth(fit + quiet.displacement)[0].mean() < 0.3 * truth(fit + plain.displacement)[0].mean()
+    clean = fit_detail(fit, basis.faces, surface(points, alpha), faces, DetailFit(**on), basis.shape_metric,
+                       basis.scale)
+    assert clean.levels[0]["weight"] == SPHERE_DETAIL["weights"][0]  # a clean scan keeps the whole weight
 
 
 def test_fade_zeroes_the_displacement_at_the_vertices_and_keeps_it_away_from_them():

@@ -180,7 +180,11 @@ class DetailFit:
     are kept while no point moved more than this x the cutoff (``VarifoldLoss``); scan_cell: the scan summed over cells of this x sigma; flip_cos, collapse: a face whose normal turns past this cosine
     from the basis fit's, or whose area falls below this share of it, is bad; retries, stiffen: a fit with
     bad faces is fitted again with the energy this many times stiffer, so many times (then faded as below);
-    fade_rings, fade_rounds: where the detail makes the surface cross itself it is faded out over this many
+    noise_floor: relative to the basis' scale, the share of the scan's estimated noise
+    (``detail.scan_noise``) a clean mesh's sampling makes, and the noise the data term takes at full weight:
+    a scan of estimate s weighs floor^2 / (s^2 - floor^2) of the weights where that is under 1, the inverse
+    of its noise's variance (None: never lowered); fade_rings, fade_rounds: where the detail makes the surface
+    cross itself it is faded out over this many
     rings around the crossing faces, one ring more each round, so many rounds, then left out; poor_fits:
     also fit it on a registration flagged poor.
     """
@@ -202,6 +206,7 @@ class DetailFit:
     tol: float = 1e-4
     ranges_margin: float = 0.1
     scan_cell: float = 0.3
+    noise_floor: float | None = 0.00028
     flip_cos: float = 0.0
     collapse: float = 0.1
     retries: int = 2

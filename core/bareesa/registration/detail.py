@@ -48,7 +48,8 @@ class Detail:
     """The detail layer of a registration: displacement (N, 3) in the template frame (None when left
     out), one report per level {sigma, weight, subdivided, stiffness, iterations, evaluations, energy,
     varifold, seconds}, how many times the energy was stiffened, how many vertices were faded out to keep
-    the surface whole, why the layer was left out (None: kept), seconds."""
+    the surface whole, why the layer was left out (None: kept), seconds, and the scan's estimated noise
+    (``scan_noise``, a length in the template frame; None where not estimated)."""
 
     displacement: np.ndarray | None
     levels: list
@@ -56,15 +57,16 @@ class Detail:
     faded: int = 0
     skipped: str | None = None
     seconds: float = 0.0
+    noise: float | None = None
 
     def to_json(self):
         """JSON-ready summary (no arrays): kept, skipped, stiffened, faded, rms and max displacement, levels,
-        seconds."""
+        seconds, noise."""
         size = None if self.displacement is None else np.linalg.norm(self.displacement, axis=1)
         return {"kept": self.displacement is not None, "skipped": self.skipped, "stiffened": self.stiffened,
                 "faded": self.faded, "rms": None if size is None else float(np.sqrt((size ** 2).mean())),
                 "max": None if size is None else float(size.max()), "levels": self.levels,
-                "seconds": float(self.seconds)}
+                "seconds": float(self.seconds), "noise": None if self.noise is None else float(self.noise)}
 
 
 def bad_faces(verts, faces, reference, flip_cos=0.0, collapse=0.1):
@@ -81,6 +83,27 @@ def scan_spacing(verts, faces):
     return math.sqrt(2.0 * float(np.median(face_geometry(verts, faces)[1])))
 
 
+def scan_noise(verts, neighbours=10):
+    """A robust estimate of the std of a scan's vertex noise across its surface: each vertex's height over
+    the quadric least-squares fitted to its ``neighbours`` nearest vertices (itself among them), standardised
+    by its leverage, 1.4826 x the median of their sizes (the quadric takes the surface's curvature; a clean
+    mesh still shows its sampling's share, a fraction of a millimetre on a body): verts (M, 3) -> a length."""
+    points = np.asarray(verts, dtype=np.float64)
+    near = points[cKDTree(points).query(points, k=min(neighbours, len(points)))[1]]   # (M, k, 3), itself first
+    centred = near - near.mean(1, keepdims=True)
+    frame = np.linalg.eigh(np.einsum("mki,mkj->mij", centred, centred))[1]          # columns: normal first
+    local = np.einsum("mki,mij->mkj", near - near[:, :1], frame)                     # (height, u, t)
+    height, u, t = local[..., 0], local[..., 1], local[..., 2]
+    spread = np.sqrt((u ** 2 + t ** 2).mean(1, keepdims=True)) + 1e-300
+    u, t = u / spread, t / spread
+    design = np.stack([np.ones_like(u), u, t, u * u, u * t, t * t], -1)              # (M, k, 6)
+    normal = np.einsum("mki,mkj->mij", design, design) + 1e-9 * np.eye(6)
+    coef = np.linalg.solve(normal, np.einsum("mki,mk->mi", design, height)[..., None])[..., 0]
+    residual = height[:, 0] - np.einsum("mi,mi->m", design[:, 0], coef)
+    leverage = np.einsum("mi,mi->m", design[:, 0], np.linalg.solve(normal, design[:, 0][..., None])[..., 0])
+    return 1.4826 * float(np.median(np.abs(residual) / np.sqrt(np.clip(1 - leverage, 1e-3, None))))
+
+
 def reached_faces(fit, faces, target, target_faces, target_weights, distance):
     """Template faces whose centre lies within ``distance`` of the scan's counted surface (its vertices and
     face centres): fit (N, 3), faces (F, 3), target (M, 3), target_faces (G, 3), target_weights (G,) or None
@@ -93,17 +116,18 @@ def reached_faces(fit, faces, target, target_faces, target_weights, distance):
 def data_stiffness(objective, x, stiff_matrix, stiffness, mass, probe=1e-4):
     """The data term's curvature per unit area along its own gradient: a finite difference of the objective's
     gradient at x (3N,) along it, less the energy's part (2 x stiffness x stiff_matrix), over the mass
-    matrix's norm of the direction (>= 0) -> float."""
-    def grad(z):
+    matrix's norm of the direction (>= 0) -> (float, (the objective's value at x, its gradient (3N,)))."""
+    def evaluate(z):
         zt = torch.from_numpy(z).requires_grad_(True)
-        return torch.autograd.grad(objective(zt), zt)[0].numpy()
+        value = objective(zt)
+        return float(value.detach()), torch.autograd.grad(value, zt)[0].numpy()
 
-    g = grad(x)
+    value, g = evaluate(x)
     direction = g / max(math.sqrt(float(g @ (mass @ g))), 1e-300)
     length = probe * max(float(np.abs(x).max()), 1.0)
-    curvature = direction @ (grad(x + length * direction) - g) / length
+    curvature = direction @ (evaluate(x + length * direction)[1] - g) / length
     curvature -= 2 * stiffness * direction @ (stiff_matrix @ direction)
-    return max(float(curvature), 0.0)
+    return max(float(curvature), 0.0), (value, g)
 
 
 def vertex_normals(verts, faces):
@@ -175,11 +199,19 @@ def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, bac
     q, f = torch.as_tensor(fit, **on), torch.as_tensor(faces, device=device)
     tv, tf = torch.as_tensor(target, **on), torch.as_tensor(target_faces, device=device)
     tw = None if target_weights is None else torch.as_tensor(np.asarray(target_weights, dtype=np.float64), **on)
-    floor = settings.spacing * scan_spacing(target, target_faces if target_weights is None
-                                            else target_faces[np.asarray(target_weights) > 0])
+    counted = target_faces if target_weights is None else target_faces[np.asarray(target_weights) > 0]
+    floor = settings.spacing * scan_spacing(target, counted)
+    # a noisier scan is a less likely surface: the data term weighs as the inverse of the noise's variance
+    # (the estimate less the floor a clean mesh's sampling makes), whole up to the floor's; the layer takes
+    # the scan's detail, not its noise
+    noise = scan_noise(target[np.unique(counted)]) if settings.noise_floor is not None else None
+    quiet = 1.0
+    if noise is not None:
+        floor2 = (settings.noise_floor * scale) ** 2
+        quiet = min(1.0, floor2 / max(noise ** 2 - floor2, 1e-300))
     plan = []  # (sigma, weight, iterations, subdivided) per level; a level the floor makes a repeat is dropped
     for k, s in enumerate(settings.sigmas):
-        level = (max(s * scale, floor), settings.weights[min(k, len(settings.weights) - 1)],
+        level = (max(s * scale, floor), quiet * settings.weights[min(k, len(settings.weights) - 1)],
                  settings.max_iter[min(k, len(settings.max_iter) - 1)],
                  bool(settings.subdivided[min(k, len(settings.subdivided) - 1)]))
         if not plan or level[0] < plan[-1][0] * 0.999 or level[3] != plan[-1][3]:
@@ -226,8 +258,10 @@ def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, bac
                 return out
 
             share = (lo + (hi - lo) * k / len(plan), lo + (hi - lo) * (k + 1) / len(plan))
+            start = None
             if k == 0 or weight != plan[k - 1][1]:  # (a finer level keeps the preconditioner: L-BFGS rescales it)
-                curvature = data_stiffness(objective, x, stiff_matrix, stiffness, mass)
+                curvature, first = data_stiffness(objective, x, stiff_matrix, stiffness, mass)
+                start = None if x.any() else first  # the solve's first evaluation (at d = 0 sliding adds nothing)
                 solve = optimize.sparse_solver(2 * stiffness * stiff_matrix + curvature * mass
                                                + 2 * settings.tangential * curvature * sliding)
             slide[0] = settings.tangential * curvature  # sliding along the surface costs like a normal misfit
@@ -235,7 +269,7 @@ def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, bac
                                                          progress=share, message=f"registration: detail "
                                                          f"(sigma {sigma:.3g})", ftol=settings.ftol,
                                                          plateau=(settings.plateau_window, settings.plateau),
-                                                         memory=settings.memory)
+                                                         memory=settings.memory, start=start)
             energy, gamma = terms.get(x.tobytes(), (float("nan"), float("nan")))
             levels.append({"sigma": float(sigma), "weight": float(weight), "subdivided": subdivided,
                            "stiffness": float(stiffness),
@@ -254,13 +288,13 @@ def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, bac
         broken = np.unique(faces[bad_faces(fit + d, faces, fit, settings.flip_cos, settings.collapse)])
         broken = np.union1d(broken, _crossing_vertices(fit + d, faces, fit, changed))
         if not len(broken):
-            return Detail(d, levels, stiffened, int(faded.sum()), None, time.perf_counter() - t0)
+            return Detail(d, levels, stiffened, int(faded.sum()), None, time.perf_counter() - t0, noise)
         faded[broken] = True
         faded_before = d
         d = fade(d, faces, np.flatnonzero(faded), rings)
         changed = np.flatnonzero(np.any(d != faded_before, axis=1))
     return Detail(None, levels, stiffened, int(faded.sum()), "it flipped faces or made the surface cross itself",
-                  time.perf_counter() - t0)
+                  time.perf_counter() - t0, noise)
 
 
 def detail_of(basis, code, transform, scan_verts, scan_faces, config, scan_face_weights=None, landmarks=None,
