@@ -201,7 +201,7 @@ def figure(path, shown, top=5.0):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--people", type=int, default=3, help="held-out Anny people (each clean, noisy, holes)")
+    parser.add_argument("--people", type=int, default=6, help="held-out Anny people (each clean, noisy, holes)")
     parser.add_argument("--real", type=int, default=2, help="random orientations of the real body")
     parser.add_argument("--noise", type=float, default=0.002, help="the noisy scans' noise (m)")
     parser.add_argument("--basis", default="human")

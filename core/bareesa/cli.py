@@ -293,7 +293,7 @@ def cmd_register(args):
                  "basis fit residual": out["residual"]}
         if res.detail is not None:
             shown.update({"detailed chamfer": report["chamfer"], "detailed residual": report["residual"],
-                          "basis fit output": out["basis_fit_output"]})
+                          "scan noise (estimated)": report.get("noise"), "basis fit output": out["basis_fit_output"]})
         elif report.get("skipped") and report["skipped"] != "turned off":
             shown["detail"] = f"none ({report['skipped']})"
         _print({**shown, "seconds": out["seconds"]}, False, f"registered {args.scan} onto basis '{basis.name}'")

@@ -75,6 +75,7 @@ def test_register_returns_the_detailed_mesh_beside_the_basis_fit_and_can_leave_i
     assert res.output_vertices is res.detailed_vertices
     report = res.to_json()["detail"]
     assert report["kept"] and report["residual"] < res.residual and report["chamfer"] < res.chamfer
+    assert report["noise"] == pytest.approx(scan_noise(moved), rel=1e-6)  # in the scan's units
     back = RegistrationResult.from_state(res.to_state())
     assert np.array_equal(back.detail, res.detail) and back.detail_report == res.detail_report
     plain = register(basis, moved, scan_faces, detail={"enabled": False})
@@ -148,6 +149,7 @@ def test_the_noise_estimate_finds_the_std_of_the_noise_and_almost_none_on_a_clea
         for sigma, seed in ((0.005, 0), (0.02, 1)):
             noisy = points + np.random.default_rng(seed).normal(size=points.shape) * sigma
             assert scan_noise(noisy) == pytest.approx(sigma, rel=0.15)
+            assert scan_noise(noisy, centres=1000) == pytest.approx(sigma, rel=0.15)  # measured at 1000 of them
 
 
 def test_on_a_noisy_scan_the_layer_weighs_the_data_less_and_stays_near_the_true_surface(bumped):

@@ -83,20 +83,24 @@ def scan_spacing(verts, faces):
     return math.sqrt(2.0 * float(np.median(face_geometry(verts, faces)[1])))
 
 
-def scan_noise(verts, neighbours=10):
+def scan_noise(verts, neighbours=10, centres=50000):
     """A robust estimate of the std of a scan's vertex noise across its surface: each vertex's height over
     the quadric least-squares fitted to its ``neighbours`` nearest vertices (itself among them), standardised
     by its leverage, 1.4826 x the median of their sizes (the quadric takes the surface's curvature; a clean
-    mesh still shows its sampling's share, a fraction of a millimetre on a body): verts (M, 3) -> a length."""
+    mesh still shows its sampling's share, a fraction of a millimetre on a body); at most ``centres``
+    vertices (a fixed random choice) are measured: verts (M, 3) -> a length."""
     points = np.asarray(verts, dtype=np.float64)
-    near = points[cKDTree(points).query(points, k=min(neighbours, len(points)))[1]]   # (M, k, 3), itself first
+    chosen = points
+    if len(points) > centres:
+        chosen = points[np.random.default_rng(0).choice(len(points), centres, replace=False)]
+    near = points[cKDTree(points).query(chosen, k=min(neighbours, len(points)))[1]]   # (C, k, 3), itself first
     centred = near - near.mean(1, keepdims=True)
     frame = np.linalg.eigh(np.einsum("mki,mkj->mij", centred, centred))[1]          # columns: normal first
     local = np.einsum("mki,mij->mkj", near - near[:, :1], frame)                     # (height, u, t)
     height, u, t = local[..., 0], local[..., 1], local[..., 2]
     spread = np.sqrt((u ** 2 + t ** 2).mean(1, keepdims=True)) + 1e-300
     u, t = u / spread, t / spread
-    design = np.stack([np.ones_like(u), u, t, u * u, u * t, t * t], -1)              # (M, k, 6)
+    design = np.stack([np.ones_like(u), u, t, u * u, u * t, t * t], -1)              # (C, k, 6)
     normal = np.einsum("mki,mkj->mij", design, design) + 1e-9 * np.eye(6)
     coef = np.linalg.solve(normal, np.einsum("mki,mk->mi", design, height)[..., None])[..., 0]
     residual = height[:, 0] - np.einsum("mi,mi->m", design[:, 0], coef)

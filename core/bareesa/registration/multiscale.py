@@ -187,6 +187,8 @@ def register(basis, scan_verts, scan_faces, config=None, *, landmarks=None, scan
     detailed = None if detail.displacement is None else fit.vertices + fit.transform.invert_vectors(
         detail.displacement)
     report = {**detail.to_json(), "chamfer": None, "residual": None}
+    if report["noise"] is not None:  # in the scan's units, as the distances
+        report["noise"] /= float(fit.transform.scale)
     if detailed is not None:
         report.update(chamfer=chamfer(detailed, used), residual=fit_residual(basis, detailed, used, fit.transform))
     return RegistrationResult(code=fit.path[-1], vertices=fit.vertices, path=fit.path, transform=fit.transform,

@@ -27,8 +27,9 @@ class RegistrationResult:
     seconds}, else None. detail (N, 3) the detail layer (``detail.fit_detail``: the scan's own detail the
     basis cannot make) in the template frame, F(code) + detail the detailed mesh there, or None (turned off,
     a poor fit, or left out); detailed_vertices (N, 3) that mesh in the scan's frame (None without detail);
-    detail_report {kept, skipped, stiffened, faded, rms, max, levels, seconds, chamfer, residual} (the last
-    two of the detailed mesh, like ``chamfer`` and ``residual`` of the basis fit).
+    detail_report {kept, skipped, stiffened, faded, rms, max, levels, seconds, noise, chamfer, residual}
+    (noise: the scan's estimated noise in its own units, ``detail.scan_noise``, None where the layer was
+    not fitted; the last two of the detailed mesh, like ``chamfer`` and ``residual`` of the basis fit).
     """
 
     code: np.ndarray
