@@ -123,3 +123,31 @@ def test_the_posed_start_is_projected_with_the_registrations_own_metric(figure, 
     res = multiscale.register(basis, *scan, config)
     assert res.articulated["score"] is not None
     assert seen and all(w == config.shape_metric(basis) for w in seen) and seen[0] != motion
+
+
+def test_a_bone_below_a_searched_one_is_tried_only_at_the_librarys_rotations(figure):
+    basis, _ = figure
+    names = [n for n, *_ in synthetic.FIGURE_JOINTS]
+    knee, hip = names.index("knee.L"), names.index("hip.L")
+    library = np.zeros((3, len(names), 3))
+    library[:, knee, 0] = np.radians([30, 80, 200])  # bent as a knee bends (the last past its range)
+    skeleton = dataclasses.replace(articulated.Skeleton.of_basis(basis), library=library)
+    tried = {}
+
+    class Counting:  # records each joint's candidates; no candidate is better than where it is
+        def __init__(self):
+            self.skeleton, self.basis = skeleton, basis
+
+        def rotations(self, x):
+            return np.asarray(x[:3 * len(names)]).reshape(len(names), 3).copy()
+
+        def values(self, sigma, x, trials):
+            varying = np.flatnonzero(np.ptp(trials, axis=0).max(1) > 0)
+            for j in varying:
+                tried.setdefault(int(j), []).extend(trials[:, j].tolist())
+            return np.ones(len(trials))
+
+    articulated.direction_search(Counting(), 0.1, np.zeros(3 * len(names) + 7))
+    allowed = np.clip(library[:, knee], skeleton.limits[knee, :, 0], skeleton.limits[knee, :, 1])
+    assert np.allclose(sorted(map(tuple, tried[knee])), sorted(map(tuple, allowed)), atol=1e-6)
+    assert len(tried[hip]) > 10  # a limb's root is tried toward the 26 directions too (clipped, some alike)

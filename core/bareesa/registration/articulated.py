@@ -170,11 +170,11 @@ def _turning(a, b):
     return axis / np.linalg.norm(axis) * math.acos(cos)
 
 
-def searched_joints(skeleton, template, faces, roots=False, share=0.05):
+def searched_joints(skeleton, template, faces, share=0.05):
     """The joints whose direction the discrete search tries, heaviest subtree first, and the rest direction
     (3,) of each (from its centre to its subtree's skinned centroid): not the root, a wide range (90 degrees
     or more), a subtree of at least ``share`` of the surface (template (N, 3), faces (F, 3): a limb, not a
-    hand); ``roots``: only those whose parent is not searched (an upper arm, a thigh)."""
+    hand)."""
     n_joints = len(skeleton.joints)
     subtree = np.eye(n_joints, dtype=bool)
     for j in range(n_joints - 1, 0, -1):  # parents come before their children
@@ -192,24 +192,32 @@ def searched_joints(skeleton, template, faces, roots=False, share=0.05):
         arm = (mass[:, None] * template).sum(0) / mass.sum() - skeleton.joints[j]
         if np.linalg.norm(arm) > 1e-9:
             out[j] = (float(mass.sum()), arm / np.linalg.norm(arm))
-    if roots:
-        out = {j: v for j, v in out.items() if skeleton.parents[j] not in out}
     return [(j, arm) for j, (_, arm) in sorted(out.items(), key=lambda item: -item[1][0])]
 
 
 def direction_search(problem, sigma, x0, passes=1, roots=False):
     """Joint by joint (``searched_joints``; ``roots``: the limbs' roots only), its rotation set to each
-    candidate and kept where ``problem.values`` at ``sigma`` is lowest: the rotations taking its rest
-    direction onto each of 26 directions and its rotations in the pose library, clipped into its range;
-    ``passes`` sweeps: -> variables (n,) numpy."""
+    candidate and kept where ``problem.values`` at ``sigma`` is lowest: a limb's root (an upper arm, a
+    thigh) the rotations taking its rest direction onto each of 26 directions and its rotations in the pose
+    library, a bone below a searched one (a forearm, a shin) the library's rotations only; clipped into
+    its range; ``passes`` sweeps: -> variables (n,) numpy."""
     skeleton, basis = problem.skeleton, problem.basis
     x = np.array(x0, dtype=np.float64)
     rot = problem.rotations(x)
     best = float(problem.values(sigma, x, rot[None])[0])
+    limbs = searched_joints(skeleton, basis.template, basis.faces)
+    below = {j for j, _ in limbs if skeleton.parents[j] in {k for k, _ in limbs}}
     for _ in range(passes):
-        for j, arm in searched_joints(skeleton, basis.template, basis.faces, roots):
+        for j, arm in limbs:
+            if roots and j in below:
+                continue
             lo, hi = skeleton.limits[j, :, 0], skeleton.limits[j, :, 1]
-            turns = [_turning(arm, d) for d in _directions()] + list(skeleton.library[:, j])
+            turns = list(skeleton.library[:, j])
+            # a turn onto any direction is a rotation about any axis: for an elbow, which bends about one,
+            # most are no pose (a forearm folded back through the upper arm) and the coarse varifold can
+            # prefer them; the library's poses bend it as people do
+            if j not in below or not turns:
+                turns = [_turning(arm, d) for d in _directions()] + turns
             turns = np.unique(np.round(np.clip(turns, lo, hi), 6), axis=0)
             trials = np.repeat(rot[None], len(turns), 0)
             trials[:, j] = turns
