@@ -209,6 +209,7 @@ def fit_detail(fit, faces, target, target_faces, settings, metric, scale, *, bac
     # (the estimate less the floor a clean mesh's sampling makes), whole up to the floor's; the layer takes
     # the scan's detail, not its noise
     noise = scan_noise(target[np.unique(counted)]) if settings.noise_floor is not None else None
+    noise = noise if noise is not None and math.isfinite(noise) else None  # (a degenerate scan: not lowered)
     quiet = 1.0
     if noise is not None:
         floor2 = (settings.noise_floor * scale) ** 2
