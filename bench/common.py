@@ -70,8 +70,9 @@ def table(title, header, rows):
 
 
 def dict_table(title, rows):
-    """A results table from a list of dicts sharing their keys (the first row's keys are the header)."""
-    header = list(rows[0]) if rows else []
+    """A results table from a list of dicts: the header is every key in the order first met (a row
+    without a key leaves its cell empty)."""
+    header = list(dict.fromkeys(k for r in rows for k in r))
     return table(title, header, [[r.get(k) for k in header] for r in rows])
 
 

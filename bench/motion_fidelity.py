@@ -212,7 +212,7 @@ def main(argv=None):
     parser.add_argument("--components", type=int, default=COMPONENTS)
     parser.add_argument("--human", action="store_true", help="also the human basis on held-out people (needs Anny)")
     parser.add_argument("--people", type=int, default=3, help="held-out identities of the human part")
-    parser.add_argument("--scans", type=int, default=2,
+    parser.add_argument("--scans", type=int, default=6,
                         help="human part: sequences whose frames are also given as registered simulated scans")
     parser.add_argument("--also", action="append", default=[], metavar="LABEL=W",
                         help="human part: also a metric LABEL with the weights W (six numbers), for comparison")

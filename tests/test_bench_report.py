@@ -7,7 +7,7 @@ import json
 import pytest
 
 from bench import report
-from bench.common import table, variant_of, write_results
+from bench.common import dict_table, table, variant_of, write_results
 
 MACHINE = {"cpu": "Test CPU 9000", "cores": 2, "threads": 2, "gpu": None, "python": "3.11.7", "torch": "2.13.0"}
 
@@ -172,3 +172,10 @@ def test_variant_names_the_arguments_that_differ_from_the_defaults():
     assert variant_of(parser, parser.parse_args(["--device", "cuda", "--skip", "matching", "random"])) \
         == "device-cuda_skip-matching-random"
     assert variant_of(parser, parser.parse_args(["--threads", "1", "--card"])) == "card-on_threads-1"
+
+
+def test_dict_table_header_has_every_rows_keys_in_order_first_met():
+    rows = [{"sequence": "a", "gap": 0.1}, {"sequence": "b", "finished": True, "gap": None}, {"failed": "why"}]
+    out = dict_table("t", rows)
+    assert out["header"] == ["sequence", "gap", "finished", "failed"]
+    assert out["rows"] == [["a", 0.1, None, None], ["b", None, True, None], [None, None, None, "why"]]
