@@ -149,7 +149,8 @@ def agreement_rows(basis, seqs, scans):
     sequence, and, for the first ``scans`` sequences, between registered simulated scans of them; shot from
     its first two points by AGREEMENT_STEPS - 2 steps: -> rows with the largest and the last frame's mean
     vertex distance (mm) between the shot and the geodesic. Also extrapolation 10 frames ahead from registered
-    scans of frames 20 and 22: finished or not, and its error at 10 ahead against the true frame."""
+    scans of frames 20 and 22 (``workflows.extrapolate``: the second registered in the first's frame): finished
+    or not, and its error at 10 ahead against the true frame."""
     from bareesa.scan_simulator import simulate_scan
     from bareesa.shooting import extrapolate
 
@@ -180,7 +181,7 @@ def agreement_rows(basis, seqs, scans):
             try:
                 found = workflows.extrapolate(basis, *ends, 10, workflows.Options(), keep_detail=False)
                 pred = decode_path(t, h, found.path[-1:])[0]
-                row |= {"finished": True, "frozen frames": len(found.shooting.frozen),
+                row |= {"finished": True, "same frame": found.same_frame, "frozen frames": len(found.shooting.frozen),
                         "error at 10 ahead (mm)": 1e3 * float(np.linalg.norm(pred - seq[42], axis=1).mean())}
             except BareEsaError as err:
                 reached = getattr(err, "frames", None)

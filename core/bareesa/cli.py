@@ -220,6 +220,10 @@ def cmd_extrapolate(args):
     if motion.shooting.speed_relaxed and not args.json:
         refined["speed varied at frames"] = ",".join(str(k) for k in motion.shooting.speed_relaxed) + \
             " (the body passes a creased, almost flat joint there; kept at the finest step)"
+    if motion.same_frame is not None:  # two scans: was the second registered in the first's frame?
+        refined["same_frame" if args.json else "second scan in the first's frame"] = (
+            motion.same_frame if args.json else "yes" if motion.same_frame else
+            "no (fitted there it was far from the scan: registered apart)")
     if motion.shooting.frozen and not args.json:
         refined["continued at frames"] = ",".join(str(k) for k in motion.shooting.frozen) + \
             " (no geodesic step converged there: finished in the metric of its last point)"

@@ -281,17 +281,47 @@ def path_between(basis, a, b, n_frames, options=Options(), anchor=True, keep_det
 class Continuation:
     """A motion continued along the geodesic: ends (Code, Code) of the inputs; path (n_new + 2, P),
     frames 0 and 1 the inputs; detail (n_new + 2, N, 3) their off-basis detail continued linearly, or None;
-    shooting the ``shooting.ShootingReport`` (where time was refined)."""
+    shooting the ``shooting.ShootingReport`` (where time was refined); same_frame, for two Scans, whether the
+    second was registered in the first's frame (``in_frame_of``), else None."""
 
     ends: tuple
     path: np.ndarray
     detail: np.ndarray | None = None
     shooting: object = None
+    same_frame: bool | None = None
+
+
+#: The second of two scans refitted in the first's frame is kept when its mean distance to the scan
+#: (``RegistrationResult.residual``) is at most this many times its own registration's: scans of one capture
+#: share a frame, scans of two sessions do not (their refit cannot take the body's move between them).
+SAME_FRAME_RESIDUAL = 1.1
+
+
+def in_frame_of(basis, first, second, scan, options=Options(), callback=None, cancel=None):
+    """The second of two registered scans refitted in the first's frame (``registration.register_in_frame``),
+    so that their codes differ by the motion between them and not also by a difference of alignments the pose
+    fields absorb, nor by the directions a scan barely determines: started from the first's code (as a
+    capture's next frame), else, where that fit is far from the scan (the poses are far apart), from its own
+    code. first, second: Codes of Scans; scan the second Scan -> its Code, the refitted one, or ``second``
+    itself where neither refit comes within SAME_FRAME_RESIDUAL of its own fit (not one frame)."""
+    own = second.registration
+    monitor = Monitor("same frame", callback, cancel)
+    for k, start in enumerate((first.code, second.code)):
+        res = registration.register_in_frame(basis, scan.verts, scan.faces, first.registration.transform, start,
+                                             options.registration_config(basis), landmarks=scan.landmarks,
+                                             scan_face_weights=scan.face_weights,
+                                             callback=monitor.scaled(k / 2, (k + 1) / 2), cancel=cancel)
+        if own.residual is None or res.residual is None or res.residual <= SAME_FRAME_RESIDUAL * own.residual:
+            return Code(res.code, detail=res.detail, registration=res)
+    return second
 
 
 def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=True, callback=None, cancel=None):
     """Continue the motion a -> b by n_new geodesic steps (``shooting.extrapolate``, anchored unless
     anchor is False), with the off-basis detail continued as the latent line is: -> Continuation.
+
+    Two Scans are taken as frames of one capture: the second is refitted in the first's frame
+    (``in_frame_of``; ``Continuation.same_frame`` says whether that refit was kept).
 
     Where no step converges even at the finest refinement, the frame is finished in the metric frozen there
     (``shooting.extrapolate(frozen=True)``; ``Continuation.shooting.frozen`` names those frames). The motion
@@ -299,7 +329,13 @@ def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=
     first frame that creases a joint flat that the inputs did not: it has left the bodies the basis can make."""
     monitor = Monitor("extrapolate", callback, cancel)
     lo = _scan_share((a, b))
-    ends = tuple(codes_of(basis, [a, b], options, monitor.scaled(0.0, lo), cancel))
+    both = isinstance(a, Scan) and isinstance(b, Scan)
+    ends = tuple(codes_of(basis, [a, b], options, monitor.scaled(0.0, 0.8 * lo if both else lo), cancel))
+    same_frame = None
+    if both:  # two scans of one capture: the second refitted in the first's frame
+        second = in_frame_of(basis, ends[0], ends[1], b, options, monitor.scaled(0.8 * lo, lo), cancel)
+        same_frame = second is not ends[1]
+        ends = (ends[0], second)
     inputs = [end.code for end in ends]
     reference = input_quality(basis, inputs)
 
@@ -310,7 +346,7 @@ def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=
 
     def continuation(path, report=None):  # the frames, their detail continued as the latent line is
         return Continuation(ends=ends, path=path, detail=_detail_along(ends, np.arange(len(path)), keep_detail),
-                            shooting=report)
+                            shooting=report, same_frame=same_frame)
 
     template, faces, fields = options.tensors(basis)
     try:

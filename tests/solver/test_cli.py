@@ -1,3 +1,4 @@
+import dataclasses
 import json
 
 import numpy as np
@@ -269,6 +270,33 @@ def test_an_extrapolation_stopped_at_a_creased_frame_keeps_the_frames_before_it(
     monkeypatch.setattr(workflows, "creased", lambda *a, **k: True)
     rc, _, err = run(capsys, "extrapolate", *ends, "--steps", "4", "-o", tmp / "none")
     assert rc == 2 and "frame 1 of 4" in err and "start from closer inputs" in err and not (tmp / "none").exists()
+
+
+def test_extrapolate_from_two_scans_says_whether_the_second_was_registered_in_the_firsts_frame(capsys, built,
+                                                                                               monkeypatch):
+    from bareesa import workflows
+
+    tmp, out, seqs = built
+    real = workflows.extrapolate
+
+    for same in (True, False):
+        def two_scans(*args, same=same, **kwargs):  # (the bend frames stand for two scans of one capture)
+            return dataclasses.replace(real(*args, **kwargs), same_frame=same)
+
+        monkeypatch.setattr(cli, "extrapolate", two_scans)
+        rc, text, err = run(capsys, "extrapolate", seqs["bend"][0], seqs["bend"][1], "--basis", out, "--steps", "1",
+                            "-o", tmp / f"frame{same}")
+        assert rc == 0, err
+        line = next(t for t in text.splitlines() if "second scan in the first's frame" in t)
+        said = " ".join(line.split("frame", 1)[1].split())
+        assert said == ("yes" if same else "no (fitted there it was far from the scan: registered apart)")
+        rc, text, err = run(capsys, "extrapolate", seqs["bend"][0], seqs["bend"][1], "--basis", out, "--steps", "1",
+                            "-o", tmp / f"json{same}", "--json")
+        assert rc == 0 and json.loads(text)["same_frame"] is same
+    monkeypatch.setattr(cli, "extrapolate", real)
+    rc, text, err = run(capsys, "extrapolate", seqs["bend"][0], seqs["bend"][1], "--basis", out, "--steps", "1",
+                        "-o", tmp / "meshes", "--json")
+    assert rc == 0 and "same_frame" not in json.loads(text)  # (meshes of the template: no registration)
 
 
 def test_interpolate_and_extrapolate_keep_the_inputs_off_basis_detail(capsys, built):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from bareesa import registration, synthetic
+from bareesa import evaluation, registration, synthetic
 from bareesa.registration import checks, poses, prepared
 from bareesa.registration import problem as level_problem
 from bareesa.registration.config import LevelSolve, PoseSearch, RegistrationConfig
@@ -739,3 +739,31 @@ def test_a_binned_level_uses_its_own_cell_size_unless_the_caller_gives_one(space
     for bad in (0.0, -0.5, 3.0):
         with pytest.raises(InputError, match="bin_cell"):
             Level(0.1, 1e3, 2, 10, bin_cell=bad)
+
+
+def test_a_scan_registered_in_a_given_frame_keeps_that_alignment_and_answers_in_its_own_frame(space, moved):
+    """``register_in_frame``: another scan of the capture, mapped by the first one's alignment and started
+    from its code, runs the warm levels only; its code is the scan's, its alignment the one given, and the
+    registered mesh and distances are in the scan's own frame and units."""
+    basis, first = space["basis"], moved[0]
+    other = space["alpha"] + np.array([0.3, 0.0, -0.2, 0.0, 0.2, 0.0])
+    u, faces = synthetic.resampled_sphere(2, seed=8)
+    scan = to_scan_frame(space, space["surface"](u, other))
+    config = RegistrationConfig.from_basis(basis).with_overrides(backend="dense")
+    res = registration.register_in_frame(basis, scan, faces, first.transform, first.code, config)
+    assert len(res.levels) == len(registration.warm_schedule(basis.schedule)) < len(basis.schedule)
+    assert np.allclose(res.transform.rotation, first.transform.rotation)
+    assert res.transform.scale == pytest.approx(first.transform.scale)
+    assert np.allclose(res.transform.translation, first.transform.translation)
+    assert np.abs(res.code - other).max() < 2e-2 * np.linalg.norm(other)
+    truth = to_scan_frame(space, space["surface"](synthetic.icosphere(2)[0], other))
+    assert np.linalg.norm(res.vertices - truth, axis=1).mean() < 5e-3 * SCALE
+    assert np.allclose(res.vertices, res.transform.invert(basis.template + np.tensordot(res.code, basis.fields, 1)))
+    assert res.chamfer == pytest.approx(evaluation.chamfer(res.vertices, scan), rel=1e-6)
+
+
+def test_warm_schedule_skips_the_coarsest_level_and_keeps_at_most_the_finest_warm_levels():
+    levels = [Level(s, 10.0, 1, 10) for s in (0.4, 0.2, 0.1, 0.05)]
+    assert registration.warm_schedule(levels) == tuple(levels[-registration.WARM_LEVELS:])
+    assert registration.warm_schedule(levels[:2]) == (levels[1],)
+    assert registration.warm_schedule(levels[:1]) == (levels[0],)

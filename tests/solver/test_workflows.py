@@ -13,7 +13,7 @@ from bareesa.basis_io import save_basis
 from bareesa.errors import InputError
 from bareesa.h2_metric import PRESETS
 from bareesa.mesh import save_mesh, triangle_quality
-from bareesa.transforms import Similarity
+from bareesa.transforms import Similarity, axis_angle_rotation
 from tests.solver.support import A, B
 
 def raw_scan(surface, code, seed):
@@ -330,3 +330,57 @@ def test_a_known_codes_detail_is_carried_along_a_path_and_a_continuation(sphere)
     assert workflows.path_between(basis, a, workflows.KnownCode(B), 5).detail is None  # one end without: none
     moved = workflows.transfer(basis, [workflows.KnownCode(A), workflows.KnownCode(B)], a, "all")
     assert moved.detail.shape == (2,) + basis.template.shape and np.allclose(moved.detail[1], detail_a)
+
+
+def test_two_scans_of_one_capture_extrapolate_from_one_frame_and_scans_of_two_sessions_from_their_own(sphere):
+    """Extrapolating from two Scans registers the second in the first's frame (their codes then differ by
+    the motion, not by a difference of alignments); where that refit is far from the scan (the body moved
+    between two sessions) the second scan's own registration is kept."""
+    basis, surface = sphere
+    frame = Similarity(axis_angle_rotation(np.array([0.3, -0.5, 0.2])), 2.0, np.array([0.5, 1.0, -0.3]))
+    a, b = (raw_scan(surface, code, seed) for code, seed in ((A, 4), (B, 6)))
+    a, b = (dataclasses.replace(scan, verts=frame.apply(scan.verts)) for scan in (a, b))
+    options = workflows.Options(registration={"detail.enabled": False})
+    found = workflows.extrapolate(basis, a, b, 1, options)
+    first, second = (end.registration for end in found.ends)
+    assert found.same_frame is True and len(second.levels) < len(basis.schedule)
+    assert np.allclose(second.transform.rotation, first.transform.rotation)
+    assert np.allclose(second.transform.translation, first.transform.translation)
+    own = workflows.code_of(basis, b, options).code  # (registered apart, a coarse sphere's code is farther off)
+    assert np.linalg.norm(found.path[1] - B) < np.linalg.norm(own - B)
+    size = float(np.ptp(b.verts, axis=0).max())
+    moved = dataclasses.replace(b, verts=b.verts + np.array([0.4, 0.0, 0.0]) * size)
+    found = workflows.extrapolate(basis, a, moved, 1, options)
+    assert found.same_frame is False and len(found.ends[1].registration.levels) == len(basis.schedule)
+    assert found.ends[1].registration.residual < 0.1
+    known = workflows.extrapolate(basis, workflows.KnownCode(A), workflows.KnownCode(B), 1, options)
+    assert known.same_frame is None
+
+
+def test_the_second_scan_is_refitted_from_the_firsts_code_then_its_own_then_left_as_registered(sphere, monkeypatch):
+    """``in_frame_of`` tries the first scan's code (a capture's next frame), then the second's own code
+    (poses far apart in one frame), each kept only within SAME_FRAME_RESIDUAL of the scan's own fit."""
+    from types import SimpleNamespace
+
+    basis, surface = sphere
+    frame = Similarity(axis_angle_rotation(np.array([0.1, 0.2, 0.3])), 1.5, np.array([0.2, 0.0, 0.1]))
+    first = workflows.Code(A, registration=SimpleNamespace(transform=frame))
+    second = workflows.Code(B, registration=SimpleNamespace(residual=0.01))
+    scan = raw_scan(surface, B, 6)
+    for residuals, kept in (([0.0105, 0.001], 0), ([0.02, 0.0105], 1), ([0.02, 0.02], None)):
+        starts = []
+
+        def fake(b, verts, faces, transform, init_code, config, *, residuals=residuals, **kwargs):
+            starts.append(np.array(init_code))
+            assert transform is frame and verts is scan.verts
+            return SimpleNamespace(code=init_code + 1.0, detail=None, residual=residuals[len(starts) - 1])
+
+        monkeypatch.setattr(registration, "register_in_frame", fake)
+        got = workflows.in_frame_of(basis, first, second, scan)
+        assert np.array_equal(starts[0], A) and (len(starts) == 1) == (kept == 0)
+        if len(starts) > 1:
+            assert np.array_equal(starts[1], B)
+        if kept is None:
+            assert got is second
+        else:
+            assert np.allclose(got.code, (A, B)[kept] + 1.0) and got.registration.residual == residuals[kept]

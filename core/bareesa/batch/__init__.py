@@ -17,8 +17,9 @@ Dask is an optional dependency (``pip install 'bareesa[batch]'``), imported only
 """
 
 from ..errors import BareEsaError, InputError, SolveCancelled
+from ..registration import WARM_LEVELS, warm_schedule
 from .cluster import MISSING_DASK, register_batch
-from .frames import SEAM_FACTOR, WARM_LEVELS, chunks_of, register_one, warm_schedule
+from .frames import SEAM_FACTOR, chunks_of, register_one
 from .in_memory import POLL_EVERY, PROGRESS_EVERY, PROGRESS_TOPIC, plain_options, register_array, register_scans
 from .records import (RECORD_VERSION, SIDECARS, SUMMARY_COLUMNS, SUMMARY_CSV, SUMMARY_JSON, BatchReport, file_hash,
                       input_hash, output_names, registered_meshes, scan_sidecars, write_atomic, write_summary)

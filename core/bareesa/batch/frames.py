@@ -3,7 +3,7 @@
 A sequence's frames are cut into chunks that run in parallel: a chunk's first frame is registered
 fully, each further frame starts from the previous frame's code and alignment (the scan mapped by the
 previous transform, no pre-alignment, no pose candidates, at most the schedule's WARM_LEVELS finest
-levels: ``warm_schedule``). The seams between chunks are checked for jumps against the median
+levels: ``registration.warm_schedule``). The seams between chunks are checked for jumps against the median
 frame-to-frame motion.
 """
 
@@ -23,11 +23,6 @@ from .records import input_hash, scan_sidecars
 
 #: A seam whose vertex jump is above this many times the median frame-to-frame motion is flagged.
 SEAM_FACTOR = 3.0
-#: A warm-started frame of a sequence skips the schedule's coarsest level (the previous frame gives the far
-#: pose it finds) and runs at most this many of its finest levels: from the previous code the finest level
-#: alone converges more slowly than the two finest, and a third level costs time for no better fit
-#: (docs/decisions/017).
-WARM_LEVELS = 2
 
 
 def chunks_of(n, chunk):
@@ -35,13 +30,6 @@ def chunks_of(n, chunk):
     if chunk < 1:
         raise InputError(f"a sequence chunk must hold at least 1 frame, got {chunk}")
     return [(lo, min(lo + chunk, n)) for lo in range(0, n, chunk)]
-
-
-def warm_schedule(schedule):
-    """The levels a warm-started frame runs: all but the coarsest of ``schedule``, at most the WARM_LEVELS
-    finest (a one-level schedule: that level) -> tuple."""
-    schedule = tuple(schedule)
-    return schedule[max(len(schedule) - WARM_LEVELS, min(1, len(schedule) - 1)):]
 
 
 def _moved_landmarks(marks, transform):
@@ -85,7 +73,7 @@ def register_one(basis, scan, previous=None, threads=1, options=None):
             # warm start: map the scan by the previous alignment, start from the previous code
             # and run the finest levels only (the coarser ones find a far pose the previous frame gives)
             before = Similarity.from_dict(previous["transform"])
-            kwargs["schedule"] = warm_schedule(basis.schedule if kwargs.get("schedule") is None
+            kwargs["schedule"] = registration.warm_schedule(basis.schedule if kwargs.get("schedule") is None
                                                else kwargs["schedule"])
             res = registration.register(basis, before.apply(verts), faces, prealign=False, refine_transform=True,
                                         init_code=np.asarray(previous["code"]), pose_candidates=None,

@@ -31,7 +31,7 @@ back with the inverse similarity, so they overlay the scan in the scan's units.
 from .config import (DetailFit, LevelSolve, MatchingSolve, PoseSearch, Prealignment, RegistrationConfig,
                      Screening, check_schedule)
 from .detail import Detail, detail_of, fit_detail
-from .multiscale import DETAIL_SHARE, register
+from .multiscale import DETAIL_SHARE, WARM_LEVELS, register, register_in_frame, warm_schedule
 from .poses import pose_starts
 from .prealign import Alignment, align_to_template, prealign_candidates, surface_moments
 from .prepared import PREPARED_EXTRAS, prepare_basis
@@ -39,7 +39,8 @@ from .problem import resample_in_time
 from .result import RegistrationResult
 from .symmetric import Matching, symmetric_match
 
-__all__ = ["DETAIL_SHARE", "PREPARED_EXTRAS", "Alignment", "Detail", "DetailFit", "LevelSolve", "Matching",
+__all__ = ["DETAIL_SHARE", "PREPARED_EXTRAS", "WARM_LEVELS", "Alignment", "Detail", "DetailFit", "LevelSolve", "Matching",
            "MatchingSolve", "PoseSearch", "Prealignment", "RegistrationConfig", "RegistrationResult", "Screening",
            "align_to_template", "check_schedule", "detail_of", "fit_detail", "pose_starts", "prealign_candidates",
-           "prepare_basis", "register", "resample_in_time", "surface_moments", "symmetric_match"]
+           "prepare_basis", "register", "register_in_frame", "resample_in_time", "surface_moments", "symmetric_match",
+           "warm_schedule"]

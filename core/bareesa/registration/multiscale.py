@@ -97,6 +97,43 @@ class Fit:
     best: int
 
 
+#: A scan started from a known code (a capture's previous frame, or the frame another scan of it gives) skips
+#: the schedule's coarsest level and runs at most this many of its finest levels: from such a code the finest
+#: level alone converges more slowly than the two finest, and a third level costs time for no better fit
+#: (docs/decisions/017).
+WARM_LEVELS = 2
+
+
+def warm_schedule(schedule):
+    """The levels a warm-started registration runs: all but the coarsest of ``schedule``, at most the
+    WARM_LEVELS finest (a one-level schedule: that level) -> tuple."""
+    schedule = tuple(schedule)
+    return schedule[max(len(schedule) - WARM_LEVELS, min(1, len(schedule) - 1)):]
+
+
+def register_in_frame(basis, scan_verts, scan_faces, transform, init_code, config=None, *, landmarks=None,
+                      scan_face_weights=None, callback=None, cancel=None):
+    """A scan registered in a frame given for it: mapped by ``transform`` (a Similarity, scan -> template
+    frame, e.g. another scan's of the same capture), started from init_code (P,), the alignment kept as it
+    is, the schedule's warm levels only (``warm_schedule``): -> RegistrationResult in the scan's frame,
+    its transform ``transform``. Two scans of one capture registered in one frame differ in their codes by
+    the motion between them, not also by a difference of alignments the pose fields absorb."""
+    config = RegistrationConfig.from_basis(basis) if config is None else config
+    config = config.with_overrides({"schedule": warm_schedule(config.schedule or basis.schedule), "prealign": False,
+                                    "refine_transform": False, "poses.candidates": None})
+    marks = None if landmarks is None else [(m[0], transform.apply(np.asarray(m[1], np.float64)[None])[0], *m[2:])
+                                            for m in landmarks]
+    res = register(basis, transform.apply(np.asarray(scan_verts, np.float64)), scan_faces, config, landmarks=marks,
+                   scan_face_weights=scan_face_weights, init_code=init_code, callback=callback, cancel=cancel)
+    report = dict(res.detail_report)
+    for key in ("noise", "chamfer"):  # (lengths: into the scan's units)
+        if report.get(key) is not None:
+            report[key] /= float(transform.scale)
+    return replace(res, vertices=transform.invert(res.vertices), transform=res.transform.compose(transform),
+                   chamfer=res.chamfer / float(transform.scale), prealignment=transform, detail_report=report,
+                   detailed_vertices=None if res.detailed_vertices is None else transform.invert(res.detailed_vertices))
+
+
 @with_one_blas_thread
 def register(basis, scan_verts, scan_faces, config=None, *, landmarks=None, scan_face_weights=None,
              init_code=None, callback=None, cancel=None, **settings):
