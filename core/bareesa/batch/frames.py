@@ -74,7 +74,7 @@ def register_one(basis, scan, previous=None, threads=1, options=None):
             # and run the finest levels only (the coarser ones find a far pose the previous frame gives)
             before = Similarity.from_dict(previous["transform"])
             kwargs["schedule"] = registration.warm_schedule(basis.schedule if kwargs.get("schedule") is None
-                                               else kwargs["schedule"])
+                                                            else kwargs["schedule"])
             res = registration.register(basis, before.apply(verts), faces, prealign=False, refine_transform=True,
                                         init_code=np.asarray(previous["code"]), pose_candidates=None,
                                         landmarks=_moved_landmarks(marks, before), **kwargs)

@@ -39,8 +39,8 @@ from .problem import resample_in_time
 from .result import RegistrationResult
 from .symmetric import Matching, symmetric_match
 
-__all__ = ["DETAIL_SHARE", "PREPARED_EXTRAS", "WARM_LEVELS", "Alignment", "Detail", "DetailFit", "LevelSolve", "Matching",
-           "MatchingSolve", "PoseSearch", "Prealignment", "RegistrationConfig", "RegistrationResult", "Screening",
-           "align_to_template", "check_schedule", "detail_of", "fit_detail", "pose_starts", "prealign_candidates",
-           "prepare_basis", "register", "register_in_frame", "resample_in_time", "surface_moments", "symmetric_match",
-           "warm_schedule"]
+__all__ = ["DETAIL_SHARE", "PREPARED_EXTRAS", "WARM_LEVELS", "Alignment", "Detail", "DetailFit", "LevelSolve",
+           "Matching", "MatchingSolve", "PoseSearch", "Prealignment", "RegistrationConfig", "RegistrationResult",
+           "Screening", "align_to_template", "check_schedule", "detail_of", "fit_detail", "pose_starts",
+           "prealign_candidates", "prepare_basis", "register", "register_in_frame", "resample_in_time",
+           "surface_moments", "symmetric_match", "warm_schedule"]
