@@ -32,14 +32,6 @@ def chunks_of(n, chunk):
     return [(lo, min(lo + chunk, n)) for lo in range(0, n, chunk)]
 
 
-def _moved_landmarks(marks, transform):
-    """Scan landmarks [(vertex, (x, y, z), weight)] mapped by a Similarity (or None)."""
-    if marks is None:
-        return None
-    points = transform.apply(np.array([m[1] for m in marks], dtype=np.float64))
-    return [(m[0], p, *m[2:]) for m, p in zip(marks, points)]
-
-
 def _worker_address():
     try:
         from distributed import get_worker
@@ -70,21 +62,16 @@ def register_one(basis, scan, previous=None, threads=1, options=None):
             kwargs["scan_face_weights"] = read_face_weights(side["ignore"], faces, len(verts))
         marks = None if side["landmarks"] is None else read_scan_landmarks(side["landmarks"], basis)
         if previous is not None and previous.get("status") == "ok":
-            # warm start: map the scan by the previous alignment, start from the previous code
-            # and run the finest levels only (the coarser ones find a far pose the previous frame gives)
-            before = Similarity.from_dict(previous["transform"])
-            kwargs["schedule"] = registration.warm_schedule(basis.schedule if kwargs.get("schedule") is None
-                                                            else kwargs["schedule"])
-            res = registration.register(basis, before.apply(verts), faces, prealign=False, refine_transform=True,
-                                        init_code=np.asarray(previous["code"]), pose_candidates=None,
-                                        landmarks=_moved_landmarks(marks, before), **kwargs)
-            transform = res.transform.compose(before)
-            vertices, basis_fit = before.invert(res.output_vertices), before.invert(res.vertices)
+            # warm start: in the previous frame's alignment (refined), from its code, on the finest levels
+            # only (the coarser ones find a far pose the previous frame gives)
+            res = registration.register_in_frame(basis, verts, faces, Similarity.from_dict(previous["transform"]),
+                                                 np.asarray(previous["code"]), landmarks=marks,
+                                                 refine_transform=True, **kwargs)
             out["warm_start"] = previous["name"]
         else:
             res = registration.register(basis, verts, faces, landmarks=marks, **kwargs)
-            transform, vertices, basis_fit = res.transform, res.output_vertices, res.vertices
             out["warm_start"] = None
+        transform, vertices, basis_fit = res.transform, res.output_vertices, res.vertices
     except BareEsaError as err:
         return {**out, "status": "failed", "error": f"{type(err).__name__}: {err}".splitlines()[0],
                 "seconds": time.perf_counter() - start}

@@ -111,20 +111,29 @@ def warm_schedule(schedule):
     return schedule[max(len(schedule) - WARM_LEVELS, min(1, len(schedule) - 1)):]
 
 
+def moved_landmarks(marks, transform):
+    """Scan landmarks [(vertex, (x, y, z)[, weight])] mapped by a Similarity (None stays None)."""
+    if marks is None:
+        return None
+    points = transform.apply(np.array([m[1] for m in marks], dtype=np.float64))
+    return [(m[0], p, *m[2:]) for m, p in zip(marks, points)]
+
+
 def register_in_frame(basis, scan_verts, scan_faces, transform, init_code, config=None, *, landmarks=None,
-                      scan_face_weights=None, callback=None, cancel=None):
+                      scan_face_weights=None, refine_transform=False, callback=None, cancel=None, **settings):
     """A scan registered in a frame given for it: mapped by ``transform`` (a Similarity, scan -> template
-    frame, e.g. another scan's of the same capture), started from init_code (P,), the alignment kept as it
-    is, the schedule's warm levels only (``warm_schedule``): -> RegistrationResult in the scan's frame,
-    its transform ``transform``. Two scans of one capture registered in one frame differ in their codes by
-    the motion between them, not also by a difference of alignments the pose fields absorb."""
+    frame, e.g. another scan's of the same capture, or a capture's previous frame's), started from init_code
+    (P,), the schedule's warm levels only (``warm_schedule``), the alignment kept as it is unless
+    refine_transform; ``settings`` override config as ``register``'s do: -> RegistrationResult in the scan's
+    frame (its transform the alignment from the scan). Two scans of one capture registered in one frame differ
+    in their codes by the motion between them, not also by a difference of alignments the pose fields absorb."""
     config = RegistrationConfig.from_basis(basis) if config is None else config
+    config = config.with_overrides({SETTING_ALIASES.get(k, k): v for k, v in settings.items()})
     config = config.with_overrides({"schedule": warm_schedule(config.schedule or basis.schedule), "prealign": False,
-                                    "refine_transform": False, "poses.candidates": None})
-    marks = None if landmarks is None else [(m[0], transform.apply(np.asarray(m[1], np.float64)[None])[0], *m[2:])
-                                            for m in landmarks]
-    res = register(basis, transform.apply(np.asarray(scan_verts, np.float64)), scan_faces, config, landmarks=marks,
-                   scan_face_weights=scan_face_weights, init_code=init_code, callback=callback, cancel=cancel)
+                                    "refine_transform": refine_transform, "poses.candidates": None})
+    res = register(basis, transform.apply(np.asarray(scan_verts, np.float64)), scan_faces, config,
+                   landmarks=moved_landmarks(landmarks, transform), scan_face_weights=scan_face_weights,
+                   init_code=init_code, callback=callback, cancel=cancel)
     report = dict(res.detail_report)
     for key in ("noise", "chamfer"):  # (lengths: into the scan's units)
         if report.get(key) is not None:
