@@ -18,7 +18,7 @@ import torch
 from . import evaluation, geodesics, latent, registration, shooting, statistics
 from .errors import FrameRejected, InputError
 from .h2_metric import H2Weights
-from .mesh import self_intersections, triangle_quality
+from .mesh import face_geometry, self_intersections, triangle_quality
 from .progress import Monitor
 
 # ------------------------------------------------------------------------------------ inputs
@@ -326,7 +326,8 @@ def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=
     Where no step converges even at the finest refinement, the frame is finished in the metric frozen there
     (``shooting.extrapolate(frozen=True)``; ``Continuation.shooting.frozen`` names those frames). The motion
     stops with ShootingFailed (naming the frame; ``reached``: the Continuation of the frames before it) at the
-    first frame that creases a joint flat that the inputs did not: it has left the bodies the basis can make."""
+    first frame that creases a joint flat that the inputs did not (a patch of collapsed triangles or a flattened
+    one: MOTION_CREASE): it has left the bodies the basis can make."""
     monitor = Monitor("extrapolate", callback, cancel)
     lo = _scan_share((a, b))
     both = isinstance(a, Scan) and isinstance(b, Scan)
@@ -341,8 +342,8 @@ def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=
 
     def check(code):
         body = basis.template + np.tensordot(code, basis.fields, axes=1)
-        return CREASED_MOTION if creased(basis.template, basis.faces, body, floor=MOTION_CREASE_QUALITY,
-                                         reference=reference) else None
+        return CREASED_MOTION if creased(basis.template, basis.faces, body, reference=reference,
+                                         **MOTION_CREASE) else None
 
     def continuation(path, report=None):  # the frames, their detail continued as the latent line is
         return Continuation(ends=ends, path=path, detail=_detail_along(ends, np.arange(len(path)), keep_detail),
@@ -365,7 +366,7 @@ def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=
         failed.reached = continuation(path)
         raise failed from None
     except shooting.ShootingFailed as err:
-        first = first_creased(basis, err.frames, inputs, floor=MOTION_CREASE_QUALITY)
+        first = first_creased(basis, err.frames, inputs, **MOTION_CREASE)
         if first is None:
             raise
         raise shooting.ShootingFailed(f"{err}; frame {first} already creases a joint flat that the inputs did not: "
@@ -376,10 +377,12 @@ def extrapolate(basis, a, b, n_new, options=Options(), anchor=True, keep_detail=
 #: Why an extrapolated frame is refused (``extrapolate``).
 CREASED_MOTION = ("it creases a joint flat that the inputs did not: the motion has left the bodies the basis "
                   "can make")
-#: An extrapolated frame is refused when one of its triangles keeps less than this share of its quality in the
-#: inputs (``input_quality``): a triangle collapsed. Real motions at full flexion go far below random bodies'
-#: CREASE_QUALITY; the measurements behind the value are in docs/decisions/023-motion-metric-fit.md.
-MOTION_CREASE_QUALITY = 0.01
+#: An extrapolated frame is refused (``creased``) when triangles that keep less than ``floor`` of their quality in
+#: the inputs (``input_quality``) cover more than ``share`` of the template's surface (a patch a user sees, not
+#: a sliver of a finger), or when one keeps less than ``flat`` of it (flattened). Real motions at full flexion
+#: go far below random bodies' CREASE_QUALITY; the measurements behind the values are in
+#: docs/decisions/023-motion-metric-fit.md.
+MOTION_CREASE = {"floor": 0.01, "share": 1e-4, "flat": 1e-3}
 
 
 def distances(basis, items, options=Options(), callback=None, cancel=None):
@@ -442,14 +445,19 @@ DRAWS_PER_BODY = 10
 CREASE_QUALITY = 0.1
 
 
-def creased(template, faces, verts, floor=CREASE_QUALITY, reference=None):
-    """Whether a body (N, 3) in the template's topology has a triangle under ``floor`` of its quality on the
-    template (N, 3), faces (F, 3) (a joint creased flat, where limbs run through each other); reference
-    (F,): the qualities to judge against instead of the template's (e.g. ``input_quality`` of a motion's
-    frames: did the motion crease a triangle its inputs did not?)."""
+def creased(template, faces, verts, floor=CREASE_QUALITY, reference=None, share=0.0, flat=0.0):
+    """Whether a body (N, 3) in the template's topology has triangles under ``floor`` of their quality on the
+    template (N, 3), faces (F, 3) (a joint creased flat, where limbs run through each other) covering more
+    than ``share`` of the template's surface (0: any one triangle), or one triangle under ``flat`` of it
+    (flattened: refused alone); reference (F,): the qualities to judge against instead of the template's (e.g.
+    ``input_quality`` of a motion's frames: did the motion crease a triangle its inputs did not?)."""
     reference = triangle_quality(template, faces) if reference is None else np.asarray(reference, dtype=np.float64)
     ratio = np.divide(triangle_quality(verts, faces), reference, out=np.ones_like(reference), where=reference > 0)
-    return bool(ratio.min() < floor)
+    below = ratio < floor
+    if not share or not below.any() or ratio.min() < flat:
+        return bool(below.any())
+    area = face_geometry(template, faces)[1]
+    return bool(area[below].sum() > share * area.sum())
 
 
 def input_quality(basis, codes):
@@ -462,8 +470,9 @@ def input_quality(basis, codes):
     return quality
 
 
-def first_creased(basis, codes, inputs=None, floor=CREASE_QUALITY):
-    """The number (1-based) of the first of codes (K, P) whose body is ``creased`` (at ``floor``), or None (also
+def first_creased(basis, codes, inputs=None, floor=CREASE_QUALITY, share=0.0, flat=0.0):
+    """The number (1-based) of the first of codes (K, P) whose body is ``creased`` (at ``floor``, over more than
+    ``share`` of the surface, or one triangle under ``flat``), or None (also
     for codes None); inputs (J, P): the motion's input codes, judged against (a registered person's triangles
     may be thinner than the template's already: only what the motion creased counts), else the template."""
     if codes is None:
@@ -471,7 +480,7 @@ def first_creased(basis, codes, inputs=None, floor=CREASE_QUALITY):
     reference = None if inputs is None else input_quality(basis, inputs)
     for k, code in enumerate(codes):
         if creased(basis.template, basis.faces, basis.template + np.tensordot(code, basis.fields, axes=1),
-                   floor=floor, reference=reference):
+                   floor=floor, reference=reference, share=share, flat=flat):
             return k + 1
     return None
 

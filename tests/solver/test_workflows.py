@@ -304,7 +304,7 @@ def test_a_crease_is_judged_against_the_motions_inputs_not_the_template(sphere):
     tri = basis.faces[0]
     squashed[tri[2]] = squashed[tri[:2]].mean(0)  # one triangle flattened to a segment: creased whatever the inputs
     assert workflows.creased(basis.template, basis.faces, squashed, reference=reference)
-    assert workflows.creased(basis.template, basis.faces, squashed, floor=workflows.MOTION_CREASE_QUALITY,
+    assert workflows.creased(basis.template, basis.faces, squashed, floor=workflows.MOTION_CREASE["floor"],
                              reference=reference)
     # a motion's frame may thin a triangle far more than a random body may (a joint at full flexion) ...
     thinned = basis.template.copy()
@@ -314,9 +314,44 @@ def test_a_crease_is_judged_against_the_motions_inputs_not_the_template(sphere):
     for keep, refused in ((0.05, False), (0.002, True)):  # ... but not collapse it
         thinned[tri[2]] = foot + keep * (c - foot)
         ratio = triangle_quality(thinned, basis.faces)[0] / own
-        assert (ratio < workflows.MOTION_CREASE_QUALITY) == refused
-        assert workflows.creased(basis.template, basis.faces, thinned, floor=workflows.MOTION_CREASE_QUALITY) == refused
+        assert (ratio < workflows.MOTION_CREASE["floor"]) == refused
+        assert workflows.creased(basis.template, basis.faces, thinned, floor=workflows.MOTION_CREASE["floor"]) == refused
         assert workflows.creased(basis.template, basis.faces, thinned)  # a random body that thin is refused
+
+
+def test_a_motions_crease_is_a_patch_a_user_sees_or_a_flattened_triangle_not_a_sliver(sphere):
+    from bareesa.mesh import face_geometry, vertex_adjacency
+
+    basis, _ = sphere
+    floor, share, flat = (workflows.MOTION_CREASE[k] for k in ("floor", "share", "flat"))
+    assert 0 < flat < floor and 0 < share < 1e-3
+    area = face_geometry(basis.template, basis.faces)[1]
+    one = area[0] / area.sum()  # the share of the surface one triangle covers
+    tri = basis.faces[0]
+    a, b, c = basis.template[tri]
+    foot = a + np.dot(c - a, b - a) / np.dot(b - a, b - a) * (b - a)
+    own = triangle_quality(basis.template, basis.faces)[0]
+    for keep in (0.2 * floor, 0.0):  # one triangle thinned to a sliver, then flattened to a segment
+        thinned = basis.template.copy()
+        thinned[tri[2]] = foot + keep * (c - foot)
+        ratio = triangle_quality(thinned, basis.faces)[0] / own
+        assert ratio < floor
+        for patch, refused in ((0.0, True), (0.5 * one, True), (2.0 * one, ratio < flat)):
+            # a sliver over less of the surface than ``share`` passes; a flattened one never does
+            assert workflows.creased(basis.template, basis.faces, thinned, floor=floor, share=patch,
+                                     flat=flat) == refused
+    # a joint folded flat: every triangle around a vertex flattened onto a line through it covers far more
+    v = tri[0]
+    around = np.flatnonzero((basis.faces == v).any(1))
+    folded = basis.template.copy()
+    patch_verts = np.append(vertex_adjacency(len(folded), basis.faces)[v].indices, v)
+    d = np.array([1.0, 0.0, 0.0])
+    folded[patch_verts] = folded[v] + np.outer((folded[patch_verts] - folded[v]) @ d, d)
+    patch = area[around].sum() / area.sum()
+    assert patch > 2 * one
+    assert workflows.creased(basis.template, basis.faces, folded, floor=floor, share=0.5 * patch)
+    assert not workflows.creased(basis.template, basis.faces, basis.template, floor=floor, share=0.5 * patch,
+                                 flat=flat)
 
 
 def test_a_known_codes_detail_is_carried_along_a_path_and_a_continuation(sphere):
