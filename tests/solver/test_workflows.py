@@ -331,12 +331,12 @@ def test_a_motions_crease_is_a_patch_a_user_sees_or_a_flattened_triangle_not_a_s
     a, b, c = basis.template[tri]
     foot = a + np.dot(c - a, b - a) / np.dot(b - a, b - a) * (b - a)
     own = triangle_quality(basis.template, basis.faces)[0]
-    for keep in (0.2 * floor, 0.0):  # one triangle thinned to a sliver, then flattened to a segment
+    for keep, flattened in ((0.2 * floor, False), (0.0, True)):  # one triangle thinned to a sliver, then flat
         thinned = basis.template.copy()
         thinned[tri[2]] = foot + keep * (c - foot)
         ratio = triangle_quality(thinned, basis.faces)[0] / own
-        assert ratio < floor
-        for patch, refused in ((0.0, True), (0.5 * one, True), (2.0 * one, ratio < flat)):
+        assert ratio < floor and (ratio < flat) == flattened
+        for patch, refused in ((0.0, True), (0.5 * one, True), (2.0 * one, flattened)):
             # a sliver over less of the surface than ``share`` passes; a flattened one never does
             assert workflows.creased(basis.template, basis.faces, thinned, floor=floor, share=patch,
                                      flat=flat) == refused
