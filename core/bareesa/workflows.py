@@ -454,8 +454,10 @@ def creased(template, faces, verts, floor=CREASE_QUALITY, reference=None, share=
     reference = triangle_quality(template, faces) if reference is None else np.asarray(reference, dtype=np.float64)
     ratio = np.divide(triangle_quality(verts, faces), reference, out=np.ones_like(reference), where=reference > 0)
     below = ratio < floor
-    if not share or not below.any() or ratio.min() < flat:
-        return bool(below.any())
+    if not below.any():
+        return False
+    if not share or ratio.min() < flat:  # any one triangle counts, or one is flattened
+        return True
     area = face_geometry(template, faces)[1]
     return bool(area[below].sum() > share * area.sum())
 
